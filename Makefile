@@ -1,0 +1,44 @@
+# Set-up and entry points. `make demo` and `make test` create .venv when missing.
+# torch==2.13.0 (the CPU wheel) is installed FIRST, so nothing pulls a CUDA build.
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip
+
+.PHONY: install demo test test-slow lint bench-deps bench clean
+
+$(VENV)/.installed: pyproject.toml Makefile
+	test -x $(PY) || python3 -m venv $(VENV)
+	$(PIP) install -q --upgrade pip
+	$(PIP) install -q torch==2.13.0
+	$(PIP) install -q -e '.[qm,dev]'
+	touch $@
+
+install: $(VENV)/.installed
+
+demo: install
+	$(VENV)/bin/emlp demo --output demo_output
+
+test: install
+	$(PY) -m pytest -q
+
+test-slow: install
+	$(PY) -m pytest -q -m slow
+
+lint: install
+	$(VENV)/bin/ruff check src tests benchmarks
+
+# SchNetPack is a benchmark baseline only. It pins sympy<=1.12, which would make pip
+# replace torch 2.13 by an old CUDA build, so it is installed without its dependencies.
+$(VENV)/.bench: $(VENV)/.installed
+	$(PIP) install -q --no-deps schnetpack==2.1.1
+	$(PIP) install -q hydra-core matscipy pytorch-lightning torchmetrics torch-ema rich dirsync fasteners
+	touch $@
+
+bench-deps: $(VENV)/.bench
+
+bench: bench-deps
+	$(PY) benchmarks/throughput.py --json benchmarks/results/throughput.json
+	$(PY) benchmarks/relax.py --json benchmarks/results/relax.json
+
+clean:
+	rm -rf $(VENV) demo_output
