@@ -12,7 +12,8 @@ the file and the frame the structure came from (``source``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
+from dataclasses import field as _field
 
 import numpy as np
 
@@ -63,15 +64,15 @@ class Structure:
     numbers: np.ndarray
     positions: np.ndarray
     pairs: np.ndarray
-    cell: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    cell: np.ndarray = _field(default_factory=lambda: np.zeros((3, 3)))
     pbc: bool = False
-    field: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    field: np.ndarray = _field(default_factory=lambda: np.zeros(3))
     charge: float = 0.0
     energy: float | None = None
     forces: np.ndarray | None = None
     pair_forces: np.ndarray | None = None
     stress: np.ndarray | None = None
-    info: dict = field(default_factory=dict)
+    info: dict = _field(default_factory=dict)
     source: str = "<memory>"
 
     def __post_init__(self) -> None:
@@ -173,8 +174,9 @@ class Structure:
         expected_pairs = (self.core_charges.sum() - self.charge) / 2.0
         if expected_pairs != round(expected_pairs):
             raise StructureError(
-                f"{where}: odd number of valence electrons (core charges {self.core_charges.sum():g},"
-                f" total charge {self.charge:g}); eMLP needs closed-shell electron pairs"
+                f"{where}: odd number of valence electrons (core charges"
+                f" {self.core_charges.sum():g}, total charge {self.charge:g});"
+                " eMLP needs closed-shell electron pairs"
             )
         if int(round(expected_pairs)) != self.n_pairs:
             raise StructureError(
