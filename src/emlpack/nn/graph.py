@@ -8,7 +8,6 @@ shifts, the molecular all-pairs list, the Ewald k set as integer triples) is com
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
 

@@ -40,7 +40,7 @@ def cosine_cutoff(r: torch.Tensor, cutoff: float, transition: float) -> torch.Te
 
 
 class GaussianBasis(nn.Module):
-    """Gaussian radial basis with centres ``start + k (end - start)/n`` and width ``(end-start)/n``."""
+    """Gaussian radial basis: centres ``start + k w``, width ``w = (end - start)/n``."""
 
     def __init__(self, n_rbf: int, start: float, end: float) -> None:
         super().__init__()
