@@ -1,0 +1,492 @@
+"""Extended-xyz reading and writing of :class:`~emlpack.structure.Structure`, on top of ASE.
+
+Each frame is parsed by ASE's extxyz reader (``ase.io.read(..., format="extxyz")``); this module
+only splits the file into frames (to name the frame in every error and to stream large files),
+interprets the keys and removes core centres. Two conventions:
+
+``reference`` (the TensorFlow eMLP's files; also called legacy)
+    electron pairs are rows of species ``Es`` (Z = 99) after the atoms, possibly including the
+    1s core centres on C/N/O (removed on read, see :mod:`emlpack.io.cores`); ``efield`` is the
+    field in atomic units (Hartree/(e·bohr)); ``Lattice`` (rows = cell vectors, Å) makes a frame
+    periodic; ``energy`` in eV; the per-atom ``force`` column in eV/Å (zero on ``Es`` rows, which
+    carry no labels).
+``native`` (what emlpack writes)
+    the same ``Es`` rows (valence pairs only); ``external_field`` in V/Å; ASE's ``energy`` (eV),
+    ``forces`` column (eV/Å, zero on ``Es`` rows), optional ``pair_forces`` column (eV/Å, zero on
+    atom rows), ``stress`` (eV/Å^3, ASE sign) and ``charge`` (e).
+
+``auto`` picks ``native`` for a frame with ``external_field`` and ``reference`` otherwise. The
+field is converted between atomic units and V/Å here and nowhere else.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import tempfile
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+import ase.io
+import numpy as np
+from ase import Atoms
+from ase.stress import voigt_6_to_full_3x3_stress
+from ase.utils import string2index
+
+from emlpack.io.cores import CORE_TOLERANCE, split_core_centres
+from emlpack.structure import PAIR_NUMBER, Structure, StructureError, n_core_pairs
+from emlpack.units import FIELD_AU_IN_V_PER_A
+
+__all__ = [
+    "ExtxyzError",
+    "iread_structures",
+    "read_structures",
+    "write_structures",
+    "CONVENTIONS",
+    "MAX_REFERENCE_FIELD_AU",
+]
+
+CONVENTIONS = ("auto", "native", "reference")
+#: |efield| (atomic units) above which a reference file is rejected as probably holding V/Å
+MAX_REFERENCE_FIELD_AU = 1.0
+#: keys of ``Structure.info`` that record the core centres removed on read (Å; rows among Es)
+CORE_CENTRES_KEY = "core_centres"
+CORE_CENTRE_ROWS_KEY = "core_centre_rows"
+
+_ALWAYS_RESERVED = {
+    "efield",
+    "external_field",
+    "charge",
+    "energy",
+    "forces",
+    "force",
+    "pair_forces",
+    "pbc",
+    "Lattice",
+    "Properties",
+    CORE_CENTRES_KEY,
+    CORE_CENTRE_ROWS_KEY,
+}
+
+
+class ExtxyzError(StructureError):
+    """A malformed or inconsistent extxyz file; the message names file, frame and problem."""
+
+
+# ---------------------------------------------------------------------------------- reading
+def read_structures(
+    path: str | os.PathLike,
+    index: int | slice | str = ":",
+    convention: str = "auto",
+    core_tolerance: float = CORE_TOLERANCE,
+) -> list[Structure]:
+    """Read the frames ``index`` (ASE syntax: ``":"``, ``"-1"``, ``"2:10:2"``, int, slice).
+
+    Positions and cell in Å, field in V/Å, energy in eV, forces in eV/Å. Core centres are removed
+    within ``core_tolerance`` (Å, minimum image under PBC) and recorded in
+    ``structure.info["core_centres"]`` (Å) and ``info["core_centre_rows"]`` (rows among the
+    frame's ``Es`` rows) so that :func:`write_structures` can put them back.
+
+    Raises:
+        ExtxyzError: (a :class:`StructureError`) naming file, 0-based frame and problem.
+    """
+    return list(iread_structures(path, index, convention, core_tolerance))
+
+
+def iread_structures(
+    path: str | os.PathLike,
+    index: int | slice | str = ":",
+    convention: str = "auto",
+    core_tolerance: float = CORE_TOLERANCE,
+) -> Iterator[Structure]:
+    """Iterate over the frames ``index`` of ``path`` one at a time (see :func:`read_structures`).
+
+    Frames are parsed lazily, so memory stays bounded for large files; arguments are checked
+    at the call.
+    """
+    if convention not in CONVENTIONS:
+        raise ValueError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    wanted = _selection(path, index)
+    return _iterate(path, wanted, convention, core_tolerance)
+
+
+def _iterate(
+    path: Path, wanted: range | set[int], convention: str, core_tolerance: float
+) -> Iterator[Structure]:
+    last = max(wanted) if isinstance(wanted, (set, frozenset)) and wanted else None
+    any_frame = False
+    for i, line, text in _frame_texts(path):
+        any_frame = True
+        if isinstance(wanted, range) and i >= wanted.stop:
+            return
+        if last is not None and i > last:
+            return
+        if i not in wanted:
+            continue
+        source = f"{path}, frame {i}"
+        atoms = _parse_frame(text, source, line)
+        yield _atoms_to_structure(atoms, convention, source, core_tolerance)
+    if not any_frame:
+        raise ExtxyzError(f"{path}: the file contains no frames")
+
+
+def _selection(path: Path, index: int | slice | str) -> range | set[int]:
+    """Frame numbers selected by ``index``; counts the frames only for negative indices."""
+    if isinstance(index, str):
+        index = string2index(index)
+    if isinstance(index, (int, np.integer)):
+        index = int(index)
+        if index < 0:
+            n = _count_frames(path)
+            if index < -n:
+                raise ExtxyzError(f"{path}: frame {index} requested but the file has {n} frames")
+            index += n
+        return {index}
+    if not isinstance(index, slice):
+        raise TypeError(f"index must be an int, a slice or a string, got {index!r}")
+    start, stop, step = index.start, index.stop, index.step
+    if (step is None or step > 0) and (start or 0) >= 0 and (stop is None or stop >= 0):
+        return range(start or 0, stop if stop is not None else 2**62, step or 1)
+    return set(range(_count_frames(path))[index])
+
+
+def _count_frames(path: Path) -> int:
+    return sum(1 for _ in _frame_texts(path))
+
+
+def _frame_texts(path: Path) -> Iterator[tuple[int, int, str]]:
+    """Yield (frame number, first line number, text) per frame; checks only the line counts."""
+    with open(path, encoding="utf-8", errors="replace") as fd:
+        lineno = 0
+        frame = 0
+        while True:
+            header = fd.readline()
+            lineno += 1
+            if not header:
+                return
+            if not header.strip():
+                for extra in fd:
+                    lineno += 1
+                    if extra.strip():
+                        raise ExtxyzError(
+                            f"{path}, frame {frame}: blank line before line {lineno}, where more"
+                            " data follows (frames must not be separated by blank lines)"
+                        )
+                return
+            start = lineno
+            try:
+                n = int(header.strip())
+            except ValueError:
+                raise ExtxyzError(
+                    f"{path}, frame {frame} (line {lineno}): expected the particle count, got"
+                    f" {header.strip()[:60]!r}"
+                ) from None
+            if n <= 0:
+                raise ExtxyzError(
+                    f"{path}, frame {frame} (line {lineno}): frame declares {n} particles;"
+                    " a frame needs at least one atom"
+                )
+            lines = [header]
+            for _ in range(n + 1):
+                line = fd.readline()
+                if not line:
+                    got = max(len(lines) - 2, 0)
+                    raise ExtxyzError(
+                        f"{path}, frame {frame} (line {start}): truncated file: the frame declares"
+                        f" {n} particles but the file ends after {got} particle lines"
+                    )
+                lines.append(line)
+            lineno += n + 1
+            yield frame, start, "".join(lines)
+            frame += 1
+
+
+def _parse_frame(text: str, source: str, line: int) -> Atoms:
+    try:
+        atoms = ase.io.read(io.StringIO(text), format="extxyz", index=0)
+    except KeyError as exc:
+        raise ExtxyzError(
+            f"{source} (line {line}): unknown element symbol {exc.args[0]!r}"
+        ) from None
+    except Exception as exc:  # ASE raises XYZError, ValueError, IndexError, TypeError
+        raise ExtxyzError(f"{source} (line {line}): cannot parse the frame: {exc}") from exc
+    return atoms
+
+
+def _atoms_to_structure(
+    atoms: Atoms, convention: str, source: str, core_tolerance: float
+) -> Structure:
+    """Interpret one ASE frame (atoms and ``Es`` rows) in ``convention``."""
+    info = dict(atoms.info)
+    results = dict(atoms.calc.results) if atoms.calc is not None else {}
+    if convention == "auto":
+        convention = "native" if "external_field" in info else "reference"
+    numbers = atoms.numbers.astype(np.int64)
+    positions = atoms.positions.astype(np.float64)
+    bad = np.flatnonzero(~np.all(np.isfinite(positions), axis=1))
+    if len(bad):
+        r = int(bad[0])
+        raise ExtxyzError(
+            f"{source}: particle row {r} ({atoms.get_chemical_symbols()[r]}) has a non-finite"
+            f" position {positions[r].tolist()}"
+        )
+    flags = np.asarray(atoms.pbc, dtype=bool)
+    if flags.any() and not flags.all():
+        raise ExtxyzError(
+            f"{source}: mixed periodicity pbc={flags.tolist()} is not supported (all or none)"
+        )
+    pbc = bool(flags.all())
+    cell = atoms.cell.array.copy() if pbc else np.zeros((3, 3))
+
+    if convention == "native":
+        field = _vector(info.pop("external_field", np.zeros(3)), "external_field", source)
+    else:
+        field = np.zeros(3)
+        if "efield" in info:
+            field_au = _vector(info.pop("efield"), "efield", source)
+            magnitude = float(np.linalg.norm(field_au))
+            if magnitude > MAX_REFERENCE_FIELD_AU:
+                raise ExtxyzError(
+                    f"{source}: |efield| = {magnitude:.4g} atomic units is implausibly large;"
+                    " this looks like a field in V/Å stored under 'efield'. The reference"
+                    " convention stores 'efield' in atomic units (1 au = 51.42 V/Å); write"
+                    " V/Å under 'external_field' instead"
+                )
+            field = field_au * FIELD_AU_IN_V_PER_A
+    charge = _scalar(info.pop("charge", 0.0), "charge", source)
+    energy = results.pop("energy", None)
+    if energy is not None:
+        energy = _scalar(energy, "energy", source)
+
+    if convention == "native":
+        forces_all = results.pop("forces", None)
+        if forces_all is None:
+            forces_all = atoms.arrays.get("force")
+        pair_forces_all = atoms.arrays.get("pair_forces")
+    else:
+        forces_all = atoms.arrays.get("force")
+        if forces_all is None:
+            forces_all = results.pop("forces", None)
+        pair_forces_all = None
+    results.pop("forces", None)
+    stress = results.pop("stress", None)
+    if stress is not None:
+        stress = np.asarray(stress, dtype=np.float64)
+        stress = voigt_6_to_full_3x3_stress(stress) if stress.shape == (6,) else stress
+        if convention == "reference":  # unit not defined by the reference: keep it as metadata
+            info["stress"] = stress
+            stress = None
+    info.update(results)  # e.g. dipole, free_energy: kept as metadata
+
+    is_pair = numbers == PAIR_NUMBER
+    core_rows = np.flatnonzero(~is_pair)
+    pair_rows = np.flatnonzero(is_pair)
+    centres = positions[pair_rows]
+    kept, removed = split_core_centres(
+        numbers[core_rows],
+        positions[core_rows],
+        centres,
+        cell,
+        pbc,
+        charge,
+        core_tolerance,
+        source,
+    )
+    if len(removed):
+        info[CORE_CENTRES_KEY] = centres[removed]
+        info[CORE_CENTRE_ROWS_KEY] = removed
+    try:
+        return Structure(
+            numbers=numbers[core_rows],
+            positions=positions[core_rows],
+            pairs=centres[kept],
+            cell=cell,
+            pbc=pbc,
+            field=field,
+            charge=charge,
+            energy=energy,
+            forces=None if forces_all is None else np.asarray(forces_all)[core_rows],
+            pair_forces=(
+                None if pair_forces_all is None else np.asarray(pair_forces_all)[pair_rows][kept]
+            ),
+            stress=stress,
+            info=info,
+            source=source,
+        )
+    except StructureError as exc:
+        message = str(exc)
+        if "electron pairs" in message or "valence electrons" in message:
+            message += (
+                f" (the frame has {len(pair_rows)} Es rows, {len(removed)} of them removed as"
+                f" core centres within {core_tolerance:g} Å)"
+            )
+        raise ExtxyzError(message) from None
+
+
+def _vector(value, key: str, source: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ExtxyzError(f"{source}: '{key}' must be 3 numbers, got {value!r}") from None
+    if arr.shape != (3,):
+        raise ExtxyzError(f"{source}: '{key}' must have 3 components, got {arr.size}: {value!r}")
+    if not np.all(np.isfinite(arr)):
+        raise ExtxyzError(f"{source}: '{key}' contains NaN or infinity: {value!r}")
+    return arr
+
+
+def _scalar(value, key: str, source: str) -> float:
+    if isinstance(value, (bool, np.bool_)):
+        raise ExtxyzError(f"{source}: '{key}' must be a number, got {value!r}")
+    try:
+        out = float(np.asarray(value, dtype=np.float64).reshape(()))
+    except (TypeError, ValueError):
+        raise ExtxyzError(f"{source}: '{key}' must be a number, got {value!r}") from None
+    if not np.isfinite(out):
+        raise ExtxyzError(f"{source}: '{key}' is not finite: {value!r}")
+    return out
+
+
+# ---------------------------------------------------------------------------------- writing
+def write_structures(
+    path: str | os.PathLike,
+    structures: Structure | Iterable[Structure],
+    convention: str = "native",
+    core_centres: bool = False,
+) -> None:
+    """Write ``structures`` to ``path`` atomically (temporary file, then ``os.replace``).
+
+    ``convention="native"`` writes ``external_field`` (V/Å), ``forces``, ``pair_forces``,
+    ``stress`` (eV/Å^3) and ``charge``; ``"reference"`` writes ``efield`` (atomic units),
+    ``energy``, the ``force`` column and ``Lattice`` (stress is not written: the reference
+    defines no unit for it). With ``core_centres=True`` (reference only) the inner-shell centres
+    are written as ``Es`` rows too: the ones removed on read (``info["core_centres"]``, at their
+    original rows) or else ``n_core_pairs(Z)`` centres on each nucleus, before the valence pairs.
+    An interrupted or failed write leaves an existing ``path`` untouched.
+    """
+    if convention not in ("native", "reference"):
+        raise ValueError(f"convention must be 'native' or 'reference', got {convention!r}")
+    if core_centres and convention != "reference":
+        raise ValueError("core_centres=True is only meaningful for convention='reference'")
+    if isinstance(structures, Structure):
+        structures = [structures]
+    path = Path(path)
+
+    def write(fd) -> None:
+        for k, structure in enumerate(structures):
+            if not isinstance(structure, Structure):
+                raise TypeError(
+                    f"{path}: item {k} to write is a {type(structure).__name__}, not a Structure"
+                )
+            atoms, columns = _structure_to_frame_atoms(structure, convention, core_centres)
+            ase.io.write(fd, atoms, format="extxyz", columns=columns, write_results=False)
+
+    atomic_write(path, write)
+
+
+def atomic_write(path: str | os.PathLike, write) -> None:
+    """Call ``write(fd)`` on a temporary file beside ``path``, then rename it onto ``path``."""
+    path = Path(path)
+    directory = path.parent if str(path.parent) else Path(".")
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as handle:
+            write(handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.chmod(tmp, _file_mode(path))
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _file_mode(path: Path) -> int:
+    if path.exists():
+        return path.stat().st_mode & 0o777
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+def _structure_to_frame_atoms(
+    s: Structure, convention: str, core_centres: bool
+) -> tuple[Atoms, list[str]]:
+    n_cores = s.n_cores
+    es = s.pairs
+    if core_centres:
+        es = _with_core_centres(s)
+    numbers = np.concatenate([s.numbers, np.full(len(es), PAIR_NUMBER)])
+    atoms = Atoms(
+        numbers=numbers,
+        positions=np.concatenate([s.positions, es], axis=0),
+        cell=s.cell if s.pbc else None,
+        pbc=s.pbc,
+    )
+    columns = ["symbols", "positions"]
+    info: dict = {}
+    extra = {k: v for k, v in s.info.items() if k not in _ALWAYS_RESERVED}
+    if s.energy is not None:
+        info["energy"] = float(s.energy)
+    if convention == "reference":
+        columns.append("numbers")
+        # 15 significant digits: a value read from a file is written back as it was
+        info["efield"] = " ".join(f"{x:.15g}" for x in s.field / FIELD_AU_IN_V_PER_A)
+        if s.charge != 0.0:
+            info["charge"] = float(s.charge)
+        info.update(extra)
+        if s.forces is not None:
+            force = np.zeros((len(atoms), 3))
+            force[:n_cores] = s.forces
+            atoms.new_array("force", force)
+            columns.append("force")
+    else:
+        info["external_field"] = s.field.copy()
+        info["charge"] = float(s.charge)
+        extra.pop("stress", None)
+        if s.stress is not None:
+            info["stress"] = s.stress.copy()
+        info.update(extra)
+        if s.forces is not None:
+            forces = np.zeros((len(atoms), 3))
+            forces[:n_cores] = s.forces
+            atoms.new_array("forces", forces)
+            columns.append("forces")
+        if s.pair_forces is not None:
+            pair_forces = np.zeros((len(atoms), 3))
+            pair_forces[n_cores:] = s.pair_forces
+            atoms.new_array("pair_forces", pair_forces)
+            columns.append("pair_forces")
+    atoms.info = info
+    return atoms, columns
+
+
+def _with_core_centres(s: Structure) -> np.ndarray:
+    """Es positions (Å) with the inner-shell centres re-inserted (see :func:`write_structures`)."""
+    need = n_core_pairs(s.numbers)
+    n_inner = int(need.sum())
+    stored = s.info.get(CORE_CENTRES_KEY)
+    rows = s.info.get(CORE_CENTRE_ROWS_KEY)
+    total = s.n_pairs + n_inner
+    ok = False
+    if stored is not None and rows is not None:
+        stored = np.asarray(stored, dtype=np.float64).reshape(-1, 3)
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        ok = (
+            len(stored) == n_inner == len(rows)
+            and len(np.unique(rows)) == len(rows)
+            and (len(rows) == 0 or (rows.min() >= 0 and rows.max() < total))
+        )
+    if not ok:
+        stored = np.repeat(s.positions, need, axis=0)
+        rows = np.arange(n_inner)
+    es = np.empty((total, 3))
+    is_core = np.zeros(total, dtype=bool)
+    is_core[rows] = True
+    es[rows] = stored
+    es[~is_core] = s.pairs
+    return es
