@@ -79,10 +79,10 @@ def find_core_centres(
         close = order[dist[row, order] <= tolerance]
         if len(close) < k:
             nearest = float(dist[row].min()) if dist.shape[1] else float("inf")
-            what = "a 1s core centre" if k == 1 else f"{k} inner-shell centres"
+            what = "no 1s core centre" if k == 1 else f"{len(close)} of its {k} inner-shell centres"
             raise StructureError(
-                f"{source}: atom {atom} (Z={numbers[atom]}) has no {what} within {tolerance:g} Å"
-                f" (found {len(close)}; nearest electron-pair row is {nearest:.4g} Å away)"
+                f"{source}: atom {atom} (Z={numbers[atom]}) has {what} within {tolerance:g} Å"
+                f" (nearest electron-pair row is {nearest:.4g} Å away)"
             )
         for c in close.tolist():
             if c in claimed:

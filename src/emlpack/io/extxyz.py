@@ -285,16 +285,19 @@ def _atoms_to_structure(
     core_rows = np.flatnonzero(~is_pair)
     pair_rows = np.flatnonzero(is_pair)
     centres = positions[pair_rows]
-    kept, removed = split_core_centres(
-        numbers[core_rows],
-        positions[core_rows],
-        centres,
-        cell,
-        pbc,
-        charge,
-        core_tolerance,
-        source,
-    )
+    try:
+        kept, removed = split_core_centres(
+            numbers[core_rows],
+            positions[core_rows],
+            centres,
+            cell,
+            pbc,
+            charge,
+            core_tolerance,
+            source,
+        )
+    except StructureError as exc:
+        raise ExtxyzError(str(exc)) from None
     if len(removed):
         info[CORE_CENTRES_KEY] = centres[removed]
         info[CORE_CENTRE_ROWS_KEY] = removed
