@@ -22,7 +22,35 @@ def _add_demo(sub) -> None:
     p.set_defaults(func=run)
 
 
-COMMANDS = [_add_demo]
+def _add_relabel(sub) -> None:
+    p = sub.add_parser(
+        "relabel", help="recompute energy, forces and Foster-Boys centres of an extxyz file"
+    )
+    p.add_argument("input", help="extxyz file (reference convention: Es centres, efield in au)")
+    p.add_argument("-o", "--output", required=True, help="output extxyz file")
+    p.add_argument("--level", default="paper",
+                   help="preset (paper, quick, tiny) or xc/basis[/auxbasis|/nodf]")
+    p.add_argument("--index", default=":", help="frames to relabel, ASE slice syntax (e.g. 0:3)")
+    p.add_argument("--boys-starts", type=int, default=3, help="Foster-Boys starts per frame")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    def run(args):
+        from emlpack.qm.refxyz import RefXYZError
+        from emlpack.qm.relabel import relabel
+
+        try:
+            report = relabel(args.input, args.output, level=args.level, index=args.index,
+                             boys_starts=args.boys_starts, progress=not args.quiet)
+        except (RefXYZError, ValueError) as exc:
+            print(f"emlp relabel: error: {exc}", file=sys.stderr)
+            return 2
+        print(report.summary())
+        return 1 if report.n_failed else 0
+
+    p.set_defaults(func=run)
+
+
+COMMANDS = [_add_demo, _add_relabel]
 
 
 def main(argv: list[str] | None = None) -> int:
