@@ -186,3 +186,6 @@ def test_bad_arguments(tmp_path):
         read_structures(tmp_path / "missing.xyz")
     with pytest.raises(ExtxyzError, match="file has 1 frames"):
         read_structures(path, index=-2)
+    with pytest.raises(ExtxyzError, match="frame 3 requested but the file has 1 frames"):
+        read_structures(path, index=3)
+    assert read_structures(path, index="1:") == []

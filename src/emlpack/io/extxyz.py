@@ -118,8 +118,10 @@ def _iterate(
 ) -> Iterator[Structure]:
     last = max(wanted) if isinstance(wanted, (set, frozenset)) and wanted else None
     any_frame = False
+    n_frames = 0
     for i, line, text in _frame_texts(path):
         any_frame = True
+        n_frames = i + 1
         if isinstance(wanted, range) and i >= wanted.stop:
             return
         if last is not None and i > last:
@@ -131,6 +133,8 @@ def _iterate(
         yield _atoms_to_structure(atoms, convention, source, core_tolerance)
     if not any_frame:
         raise ExtxyzError(f"{path}: the file contains no frames")
+    if last is not None and len(wanted) == 1 and last >= n_frames:  # an explicit frame number
+        raise ExtxyzError(f"{path}: frame {last} requested but the file has {n_frames} frames")
 
 
 def _selection(path: Path, index: int | slice | str) -> range | set[int]:
