@@ -217,3 +217,11 @@ def test_write_keeps_permissions(eqm7, tmp_path):
     os.chmod(path, 0o640)
     write_structures(path, eqm7[:1])
     assert (path.stat().st_mode & 0o777) == 0o640
+
+
+@pytest.mark.parametrize("convention", ["native", "reference"])
+def test_writing_is_idempotent(glycine, tmp_path, convention):
+    first, second = tmp_path / "a.xyz", tmp_path / "b.xyz"
+    write_structures(first, glycine, convention=convention)
+    write_structures(second, read_structures(first), convention=convention)
+    assert first.read_bytes() == second.read_bytes()
