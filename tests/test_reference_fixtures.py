@@ -88,7 +88,7 @@ def test_molecules_small_batched(small_model, molecules):
     structures = [fixture_structure(molecules, f"c{k:02d}_") for k in range(12)]
     out = small_model(small_model.graph(structures), create_graph=False)
     forces = out["forces"].detach().split([s.n_cores + s.n_pairs for s in structures])
-    for k, (s, f) in enumerate(zip(structures, forces, strict=True)):
+    for k, f in enumerate(forces):
         p = f"c{k:02d}_"
         assert_close(out["energy"][k].item(), molecules[p + "energy"], what=p)
         ref = np.concatenate([molecules[p + "core_forces"], molecules[p + "pair_forces"]])
