@@ -192,6 +192,9 @@ class PySCFLabeler:
 
             lib.num_threads(self.threads)
         lv = self.level
+        n_electrons = int(np.sum(numbers)) - int(round(charge))
+        if n_electrons % 2:
+            raise LabelingError(f"odd number of electrons ({n_electrons}); need a closed shell")
         coords_bohr = np.asarray(positions) * ANGSTROM_IN_BOHR
         mol = gto.Mole()
         mol.atom = [(int(z), tuple(r)) for z, r in zip(numbers, coords_bohr, strict=True)]
@@ -201,8 +204,6 @@ class PySCFLabeler:
         mol.spin = 0
         mol.verbose = self.verbose
         mol.build()
-        if mol.nelectron % 2:
-            raise LabelingError(f"odd number of electrons ({mol.nelectron}); need a closed shell")
         mf = dft.RKS(mol, xc=lv.xc)
         if lv.density_fit:
             mf = mf.density_fit(auxbasis=lv.auxbasis)
@@ -278,6 +279,10 @@ class PySCFLabeler:
             r2_ints = mol.intor_symmetric("int1e_r2")
         rng = np.random.default_rng(self.seed)
         n = occ.shape[1]
+        if n == 1:  # nothing to localize
+            centres = np.einsum("xpq,p,q->x", r_ints, occ[:, 0], occ[:, 0])[None, :]
+            spread = float(occ[:, 0] @ r2_ints @ occ[:, 0] - centres[0] @ centres[0])
+            return centres, [spread], "", np.array([spread])
         best = None
         spreads: list[float] = []
         saved_state = np.random.get_state()  # noqa: NPY002 - PySCF uses it
