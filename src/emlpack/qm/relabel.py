@@ -138,7 +138,7 @@ def relabel(
     failed_path = Path(str(out_path) + ".failed.yaml")
     if report.failures:
         tmp = failed_path.with_name(failed_path.name + ".tmp")
-        tmp.write_text(yaml.safe_dump(report.failures, sort_keys=False))
+        tmp.write_text(yaml.safe_dump(report.failures, sort_keys=False, width=1000))
         os.replace(tmp, failed_path)
     elif failed_path.exists():
         failed_path.unlink()
