@@ -231,3 +231,25 @@ def test_relaxation_ethanol_same_minimum(small_model, bo):
     # with these random weights two pairs nearly merge (0.017 Å in the reference result):
     # our diagnostics must say so
     assert "merged" in r.reason and not r.converged
+
+
+@pytest.mark.parametrize("size", ["small", "paper"])
+def test_convert_reference_checkpoint(tmp_path, size, molecules, periodic):
+    """`emlp convert-reference` reads the TF bundle without TensorFlow; the converted model
+    reproduces the fixture outputs."""
+    from emlpack.cli import main
+    from emlpack.nn.checkpoint import load_model
+
+    prefix = shared_path(FIX + f"tf_checkpoint_{size}") / size
+    out = tmp_path / f"{size}.pt"
+    assert main(["convert-reference", str(prefix), "-o", str(out)]) == 0
+    model = load_model(out)
+    if size == "small":
+        cases = [(molecules, "c08_"), (periodic, "p3_")]
+    else:
+        cases = [(np.load(shared_path(FIX + "paper_outputs.npz")), "P08_")]
+    for data, p in cases:
+        r = model.evaluate(fixture_structure(data, p))
+        assert_close(r["energy"], data[p + "energy"], what=p + "energy")
+        assert_close(r["forces"], data[p + "core_forces"], what=p + "forces")
+        assert_close(r["pair_forces"], data[p + "pair_forces"], what=p + "pair forces")

@@ -50,7 +50,29 @@ def _add_relabel(sub) -> None:
     p.set_defaults(func=run)
 
 
-COMMANDS = [_add_demo, _add_relabel]
+def _add_convert_reference(sub) -> None:
+    p = sub.add_parser(
+        "convert-reference",
+        help="convert a TensorFlow checkpoint of the authors' reference code (no TF needed)",
+    )
+    p.add_argument("prefix", help="checkpoint prefix, e.g. models/eQM7_aug1 (.index/.data/.pickle)")
+    p.add_argument("-o", "--output", required=True, help="emlpack model file to write (.pt)")
+
+    def run(args):
+        from emlpack.io.tf_checkpoint import read_reference_hparams, read_tf_checkpoint
+        from emlpack.nn.checkpoint import save_model
+        from emlpack.nn.reference import model_from_reference
+
+        hparams = read_reference_hparams(args.prefix)
+        model = model_from_reference(read_tf_checkpoint(args.prefix), hparams, dtype=None)
+        meta = {"converted_from": str(args.prefix), "reference_hparams": dict(hparams)}
+        save_model(model, args.output, metadata=meta)
+        print(f"wrote {args.output}: {model.n_parameters()} parameters")
+
+    p.set_defaults(func=run)
+
+
+COMMANDS = [_add_demo, _add_relabel, _add_convert_reference]
 
 
 def main(argv: list[str] | None = None) -> int:

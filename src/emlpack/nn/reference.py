@@ -72,11 +72,11 @@ def reference_state_dict(variables: Mapping[str, np.ndarray], config: ModelConfi
 def model_from_reference(
     variables: Mapping[str, np.ndarray],
     hparams: Mapping,
-    dtype: torch.dtype = torch.float64,
+    dtype: torch.dtype | None = torch.float64,
 ) -> EMLP:
     """An :class:`EMLP` holding the reference's weights (cast to ``dtype``, as the reference's
     float64 models cast their float32 variables)."""
     config = config_from_reference_hparams(hparams)
     model = EMLP(config)
     model.load_state_dict(reference_state_dict(variables, config))
-    return model.to(dtype)
+    return model.to(dtype) if dtype is not None else model

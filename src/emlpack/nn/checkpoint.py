@@ -1,0 +1,87 @@
+"""Model checkpoints: one file with weights, the full model config, units and version.
+
+The file is a plain dictionary saved with ``torch.save`` and read back with
+``torch.load(..., weights_only=True)``, so loading never unpickles arbitrary objects.
+Writes go to a temporary file that is renamed into place (an interrupted save never leaves a
+corrupt checkpoint).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import torch
+
+from emlpack import __version__
+from emlpack.nn.potential import EMLP, ModelConfig
+
+FORMAT = "emlpack-model"
+FORMAT_VERSION = 1
+UNITS = {"energy": "eV", "length": "Å", "force": "eV/Å", "field": "V/Å", "stress": "eV/Å^3"}
+
+
+class CheckpointError(ValueError):
+    """A file that is not an emlpack model checkpoint (or is damaged)."""
+
+
+def save_model(model: EMLP, path: str | Path, metadata: dict | None = None) -> Path:
+    """Write ``model`` (weights as stored, config, units, version, ``metadata``) to ``path``."""
+    path = Path(path)
+    payload = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "emlpack_version": __version__,
+        "config": model.config.to_dict(),
+        "units": dict(UNITS),
+        "dtype": str(next(model.parameters()).dtype).replace("torch.", ""),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "metadata": dict(metadata or {}),
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        torch.save(payload, tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def read_checkpoint(path: str | Path) -> dict:
+    """The raw checkpoint dictionary, validated; raises :class:`CheckpointError`."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for foreign files
+        raise CheckpointError(
+            f"{path}: not an emlpack model checkpoint (cannot be read safely: {exc})"
+        ) from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: not an emlpack model checkpoint (no '{FORMAT}' marker)")
+    if payload.get("format_version", 0) > FORMAT_VERSION:
+        raise CheckpointError(
+            f"{path}: checkpoint format {payload['format_version']} is newer than this emlpack"
+            f" ({__version__}) understands"
+        )
+    for key in ("config", "state_dict"):
+        if key not in payload:
+            raise CheckpointError(f"{path}: checkpoint lacks {key!r}")
+    return payload
+
+
+def load_model(path: str | Path, dtype: torch.dtype | None = torch.float64) -> EMLP:
+    """The :class:`EMLP` stored in ``path``, cast to ``dtype`` (None: as stored)."""
+    payload = read_checkpoint(path)
+    try:
+        model = EMLP(ModelConfig.from_dict(payload["config"]))
+        model.load_state_dict(payload["state_dict"])
+    except (ValueError, TypeError, RuntimeError, KeyError) as exc:
+        raise CheckpointError(f"{path}: inconsistent checkpoint: {exc}") from None
+    model.eval()
+    return model.to(dtype) if dtype is not None else model
