@@ -1,0 +1,178 @@
+"""HDF5 dataset store: ragged records, random access, all-or-nothing appends, extxyz."""
+
+from __future__ import annotations
+
+import os
+import pickle
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from emlpack.data import store as store_mod
+from emlpack.data.store import DatasetStore, StoreError
+from emlpack.structure import Structure
+from tests.conftest import ROOT, shared_path
+
+
+def _methane(i: int, with_labels: bool = True) -> Structure:
+    rng = np.random.default_rng(i)
+    pos = np.array([[0, 0, 0], [0.63, 0.63, 0.63], [-0.63, -0.63, 0.63], [-0.63, 0.63, -0.63],
+                    [0.63, -0.63, -0.63]], float) + 0.01 * rng.normal(size=(5, 3))
+    return Structure(
+        numbers=[6, 1, 1, 1, 1], positions=pos, pairs=0.5 * pos[1:],
+        field=rng.normal(size=3) * 0.1, energy=-1100.0 - i if with_labels else None,
+        forces=rng.normal(size=(5, 3)) if with_labels else None,
+        pair_forces=np.zeros((4, 3)) if with_labels else None,
+        info={"key": f"ch4/{i}", "molecule_id": "ch4", "kind": "nms600", "level": "tiny",
+              "wall_time": 1.5},
+    )
+
+
+def _water_crystal() -> Structure:
+    return Structure(
+        numbers=[8, 1, 1], positions=[[0, 0, 0], [0.96, 0, 0], [-0.24, 0.93, 0]],
+        pairs=[[0.3, 0, 0], [0, 0.3, 0], [0, 0, 0.3], [0, 0, -0.3]], cell=np.eye(3) * 5.0,
+        pbc=True, energy=-5.0, forces=np.zeros((3, 3)), stress=np.eye(3) * 1e-3,
+        info={"key": "ice/0", "molecule_id": "ice", "kind": "cell-nms"},
+    )
+
+
+def test_round_trip_ragged_records(tmp_path):
+    path = tmp_path / "s.h5"
+    items = [_methane(0), _water_crystal(), _methane(1, with_labels=False)]
+    with DatasetStore(path, "a") as st:
+        assert st.append(items) == 3
+    with DatasetStore(path) as st:
+        assert len(st) == 3 and st.keys() == ["ch4/0", "ice/0", "ch4/1"]
+        for ref, got in zip(items, st, strict=True):
+            np.testing.assert_array_equal(got.numbers, ref.numbers)
+            np.testing.assert_array_equal(got.positions, ref.positions)
+            np.testing.assert_array_equal(got.pairs, ref.pairs)
+            np.testing.assert_array_equal(got.field, ref.field)
+            assert got.pbc == ref.pbc and got.energy == ref.energy
+            for name in ("forces", "stress"):
+                a, b = getattr(ref, name), getattr(got, name)
+                assert (a is None and b is None) or np.array_equal(a, b)
+        assert st[1].info["kind"] == "cell-nms" and st[-1].info["key"] == "ch4/1"
+        np.testing.assert_array_equal(st[1].cell, np.eye(3) * 5.0)
+        assert st[0].info["wall_time"] == 1.5 and "record 2" in st[2].source
+        with pytest.raises(IndexError, match="record 3 out of range"):
+            st.record(3)
+        with pytest.raises(StoreError, match="read-only"):
+            st.append(_methane(5))
+
+
+def test_append_in_batches_and_unique_keys(tmp_path):
+    path = tmp_path / "s.h5"
+    with DatasetStore(path, "a") as st:
+        for i in range(5):
+            st.append(_methane(i))
+        with pytest.raises(StoreError, match="key 'ch4/2' is already stored"):
+            st.append(_methane(2))
+        st.add_failures([{"key": "ch4/9", "molecule_id": "ch4", "kind": "nms600",
+                          "reason": "SCF not converged"}])
+        st.set_reference("CH4", -1101.3, "pbe0/aug-cc-pvtz")
+        st.set_metadata(recipe="nms600: 100\n")
+    with DatasetStore(path) as st:
+        assert len(st) == 5 and st.done_keys() == {f"ch4/{i}" for i in (0, 1, 2, 3, 4, 9)}
+        assert st.failures()[0]["reason"] == "SCF not converged"
+        assert st.references() == {"CH4": {"energy": -1101.3, "level": "pbe0/aug-cc-pvtz"}}
+        assert st.metadata["recipe"] == "nms600: 100\n"
+        assert st.metadata["unit_field"] == "V/angstrom"
+        np.testing.assert_array_equal(st[3].positions, _methane(3).positions)
+
+
+def test_interrupted_append_leaves_no_partial_record(tmp_path, monkeypatch):
+    """A crash between the data write and the commit: the record is absent, nothing else lost."""
+    path = tmp_path / "s.h5"
+    with DatasetStore(path, "a") as st:
+        st.append([_methane(0), _methane(1)])
+    real = store_mod._write_rows
+
+    def crash_on_records(group, columns, start):
+        real(group, columns, start)
+        if group.name == "/records":
+            raise KeyboardInterrupt("simulated crash after the data, before the commit")
+
+    st = DatasetStore(path, "a")
+    monkeypatch.setattr(store_mod, "_write_rows", crash_on_records)
+    with pytest.raises(KeyboardInterrupt):
+        st.append(_methane(2))
+    monkeypatch.setattr(store_mod, "_write_rows", real)
+    with DatasetStore(path) as ro:  # a reader sees only committed records
+        assert len(ro) == 2 and ro.keys() == ["ch4/0", "ch4/1"]
+    st.close()
+    with DatasetStore(path, "a") as st:  # the next writer drops the uncommitted rows
+        assert st.file["cores/positions"].shape[0] == 10
+        st.append(_methane(2))
+        assert len(st) == 3
+        np.testing.assert_array_equal(st[2].positions, _methane(2).positions)
+
+
+def test_kill_9_during_appends_keeps_a_consistent_store(tmp_path):
+    """A writer killed with SIGKILL: every committed record is complete and readable."""
+    path = tmp_path / "s.h5"
+    script = textwrap.dedent(f"""
+        import sys
+        sys.path.insert(0, {str(ROOT)!r})
+        from tests.data.test_store import _methane
+        from emlpack.data.store import DatasetStore
+        st = DatasetStore({str(path)!r}, "a")
+        i = 0
+        while True:
+            st.append([_methane(i), _methane(i + 1)])
+            i += 2
+            if i == 20:
+                print("ready", flush=True)
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "ready"
+    time.sleep(0.3)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    with DatasetStore(path, "a") as st:
+        n = len(st)
+        assert n >= 20 and n % 2 == 0
+        assert st.keys() == [f"ch4/{i}" for i in range(n)]
+        for i in (0, n // 2, n - 1):
+            np.testing.assert_array_equal(st[i].positions, _methane(i).positions)
+        st.append(_methane(n))
+        assert len(st) == n + 1
+
+
+def test_store_survives_pickle_and_rejects_other_files(tmp_path):
+    path = tmp_path / "s.h5"
+    DatasetStore(path, "a").append(_methane(0))
+    st = pickle.loads(pickle.dumps(DatasetStore(path)))
+    assert len(st) == 1
+    bad = tmp_path / "bad.h5"
+    bad.write_text("not hdf5")
+    with pytest.raises(StoreError, match="bad.h5: cannot open"):
+        DatasetStore(bad)
+    with pytest.raises(StoreError, match="no such dataset store"):
+        DatasetStore(tmp_path / "missing.h5")
+
+
+def test_extxyz_round_trip_of_paper_frames(tmp_path):
+    src = shared_path("data/eqm7_pbe0_subset.xyz")
+    store = DatasetStore.from_extxyz(src, tmp_path / "s.h5", index="395:405",
+                                     level="pbe0/aug-cc-pvtz")
+    assert len(store) == 10 and store[0].info["key"] == "eqm7_pbe0_subset.xyz:0"
+    assert store[9].n_pairs == 10  # ethanol: 10 valence pairs, core centres removed
+    out = tmp_path / "back.xyz"
+    assert store.to_extxyz(out, convention="reference") == 10
+    from emlpack.io.extxyz import read_structures
+
+    ref = read_structures(src, "395:405")
+    back = read_structures(out)
+    for a, b in zip(ref, back, strict=True):
+        np.testing.assert_allclose(b.positions, a.positions, atol=1e-8)
+        np.testing.assert_allclose(b.pairs, a.pairs, atol=1e-8)
+        np.testing.assert_allclose(b.field, a.field, rtol=1e-12)
+        assert b.energy == pytest.approx(a.energy, abs=1e-9)
+        np.testing.assert_allclose(b.forces, a.forces, atol=1e-8)
