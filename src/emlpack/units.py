@@ -28,6 +28,8 @@ PASCAL_IN_AU = 3.3989315827578425e-14
 EV_PER_A3_IN_GPA = EV_IN_HARTREE / ANGSTROM_IN_BOHR**3 / (1e9 * PASCAL_IN_AU)
 #: a.u. of time per fs (molmod ``femtosecond``)
 FEMTOSECOND_IN_AU = 41.341373336646825
+#: Boltzmann constant in eV/K (molmod ``boltzmann`` = 3.1668154051341965e-06 Ha/K)
+BOLTZMANN_EV_K = 3.1668154051341965e-06 * HARTREE
 #: e·Å -> Debye (1 D = 0.20819434 e·Å)
 E_A_IN_DEBYE = 1.0 / 0.20819434
 #: harmonic spring constant of the data augmentation, Ha/Å^2 -> eV/Å^2
