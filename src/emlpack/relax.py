@@ -31,6 +31,7 @@ import torch
 
 from emlpack.nn.graph import Graph
 from emlpack.nn.potential import EMLP
+from emlpack.nn.scatter import segment_sum
 from emlpack.structure import Structure
 
 
@@ -214,7 +215,7 @@ def relax_pairs(
         e_new, g_new = prob.energy_gradient(x_new)
         n_eval += active.long()
         iters += active.long()
-        slope = x.new_zeros(b).index_add(0, prob.pair_batch, (grad * step).sum(1))
+        slope = segment_sum((grad * step).sum(1), prob.pair_batch, b)
         accept = active & (e_new <= energy + 1e-4 * slope + 1e-12 * energy.abs())
         reject = active & ~accept
         # accepted: damped BFGS update of the model Hessian, move on

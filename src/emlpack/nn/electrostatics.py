@@ -21,6 +21,7 @@ import math
 
 import torch
 
+from emlpack.nn.scatter import segment_sum
 from emlpack.units import COULOMB_EV_A, SQRT_PI
 
 
@@ -48,8 +49,8 @@ def coulomb_molecular(
     if pair_i.numel():
         r = _distance(positions[pair_j] - positions[pair_i])
         e = charges[pair_i] * charges[pair_j] * torch.erf(gamma * r) / (r + eps)
-        energy = energy.index_add(0, batch[pair_i], e)
-    self_energy = energy.new_zeros(n_structures).index_add(0, batch, charges * charges)
+        energy = energy + segment_sum(e, batch[pair_i], n_structures)
+    self_energy = segment_sum(charges * charges, batch, n_structures)
     energy = energy + torch.where(is_molecule, self_energy, 0.0) * (gamma / SQRT_PI)
     return COULOMB_EV_A * energy
 
@@ -81,11 +82,11 @@ def ewald_reciprocal(
     kk, pp = _same_structure_products(kvec_batch, batch)
     phase = (k[kk] * positions[pp]).sum(-1)
     q = charges[pp]
-    s_re = positions.new_zeros(k.shape[0]).index_add(0, kk, q * torch.cos(phase))
-    s_im = positions.new_zeros(k.shape[0]).index_add(0, kk, q * torch.sin(phase))
+    s_re = segment_sum(q * torch.cos(phase), kk, k.shape[0])
+    s_im = segment_sum(q * torch.sin(phase), kk, k.shape[0])
     term = (s_re * s_re + s_im * s_im) * torch.exp(-k2 / (4.0 * gamma * gamma)) / k2
     volume = torch.abs(torch.linalg.det(cell[periodic]))
-    sums = energy.index_add(0, kvec_batch, term)
+    sums = segment_sum(term, kvec_batch, n_structures)
     energy = energy.index_put((periodic,), sums[periodic] * (2.0 * math.pi) / volume)
     return COULOMB_EV_A * energy
 
@@ -113,4 +114,4 @@ def field_energy(
 ) -> torch.Tensor:
     """External-field energy ``-sum_i q_i E . r_i`` (eV) of each structure (E in V/Å)."""
     per_particle = -charges * (positions * field[batch]).sum(-1)
-    return positions.new_zeros(field.shape[0]).index_add(0, batch, per_particle)
+    return segment_sum(per_particle, batch, field.shape[0])

@@ -23,6 +23,7 @@ from torch import nn
 
 from emlpack.nn.electrostatics import coulomb_molecular, ewald_reciprocal, field_energy
 from emlpack.nn.graph import Graph, collate
+from emlpack.nn.scatter import segment_sum
 from emlpack.nn.schnet import SchNet
 from emlpack.structure import PAIR_NUMBER, Structure
 from emlpack.units import ANGSTROM_IN_BOHR, REFERENCE_GAMMA, REFERENCE_GCUT_PER_BOHR
@@ -129,7 +130,7 @@ class EMLP(nn.Module):
         r = torch.sqrt((d * d).sum(-1) + 1e-20)
         atomic = self.schnet(g.numbers, r, i, j)
         b = g.n_structures
-        e_sr = pos.new_zeros(b).index_add(0, g.batch, atomic)
+        e_sr = segment_sum(atomic, g.batch, b)
         c = self.config
         # Electrostatics always in float64: its pair and self terms cancel to ~1e-2 of their
         # size, which costs float32 models 1e-4 eV; it is cheap next to SchNet.
@@ -198,7 +199,7 @@ class EMLP(nn.Module):
     def dipole(g: Graph, positions: torch.Tensor | None = None) -> torch.Tensor:
         """Dipole moment sum_i q_i r_i (e·Å) of every structure, (B, 3)."""
         pos = g.positions if positions is None else positions
-        return pos.new_zeros(g.n_structures, 3).index_add(0, g.batch, g.charges[:, None] * pos)
+        return segment_sum(g.charges[:, None] * pos, g.batch, g.n_structures)
 
     # ------------------------------------------------------------------ conveniences
     def evaluate(

@@ -24,6 +24,8 @@ import math
 import torch
 from torch import nn
 
+from emlpack.nn.scatter import segment_sum
+
 LN2 = math.log(2.0)
 
 
@@ -78,7 +80,7 @@ class Interaction(nn.Module):
         w = shifted_softplus(self.filter2(shifted_softplus(self.filter1(rbf)))) * fcut[:, None]
         a = self.atom_in(h)
         messages = torch.cat([a[j] * w, a[i] * w], dim=0)
-        conv = torch.zeros_like(a).index_add_(0, torch.cat([i, j]), messages) / norm
+        conv = segment_sum(messages, torch.cat([i, j]), a.shape[0]) / norm
         return h + self.atom_out(shifted_softplus(self.conv_out(conv)))
 
 
