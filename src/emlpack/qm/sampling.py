@@ -214,14 +214,16 @@ class NMSSample:
 
 def normal_mode_sample(numbers, positions, hessian, temperature: float,
                        rng: np.random.Generator, n_modes: int | None = None,
-                       min_force_constant: float = MIN_MODE_FORCE_CONSTANT) -> NMSSample:
+                       min_force_constant: float = MIN_MODE_FORCE_CONSTANT,
+                       modes: tuple[np.ndarray, np.ndarray] | None = None) -> NMSSample:
     """Displace along a random subset of normal modes with Boltzmann amplitudes at ``T`` (K).
 
     The number of modes is uniform in 1..n_vib unless ``n_modes`` is given. Each selected
     mode gets ``q ~ N(0, k_B T / k)`` (mass-weighted), so its mean harmonic energy is
     ``k_B T / 2``. Force constants below ``min_force_constant`` are raised to it.
+    ``modes`` may pass the result of :func:`normal_modes` to skip the diagonalisation.
     """
-    k, modes = normal_modes(numbers, positions, hessian)
+    k, modes = normal_modes(numbers, positions, hessian) if modes is None else modes
     if len(k) == 0:
         raise SamplingError("no vibrational modes (a single atom?)")
     if np.any(k < -1e-3 * max(abs(k).max(), 1.0)):
