@@ -1,0 +1,87 @@
+"""Shared helpers of the benchmarks (not part of the package or its tests)."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("EMLP_SHARED", ROOT.parent / "shared"))
+DATA = SHARED / "data" / "eqm7_pbe0_subset.xyz"
+FIXTURES = SHARED / "fixtures" / "reference_tf"
+
+
+def paper_model(dtype: torch.dtype):
+    """The paper-size model with the fixture weights (random, seeded by the fixture author)."""
+    from emlpack.nn.reference import model_from_reference
+
+    weights = dict(np.load(FIXTURES / "weights_paper.npz"))
+    hparams = json.loads((FIXTURES / "hparams_paper.json").read_text())["constructor_kwargs"]
+    model = model_from_reference(weights, hparams, dtype)
+    model.eval()
+    for p in model.parameters():
+        p.requires_grad_(False)
+    return model
+
+
+def load_structures():
+    from emlpack.io import read_structures
+
+    return read_structures(DATA)
+
+
+def machine_info() -> dict:
+    info = {
+        "cpu_count": os.cpu_count(),
+        "torch": torch.__version__,
+        "torch_num_threads": torch.get_num_threads(),
+        "torch_num_interop_threads": torch.get_num_interop_threads(),
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "processor": _cpu_model(),
+    }
+    try:
+        info["load_average"] = list(os.getloadavg())
+    except OSError:
+        pass
+    return info
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor()
+
+
+def write_json(path: str | os.PathLike, data: dict) -> None:
+    """Write ``data`` atomically (temporary file in the same folder, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=2, default=_jsonable)
+            f.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _jsonable(x):
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(f"not JSON serialisable: {type(x)}")
