@@ -62,7 +62,15 @@ class RelaxOptions:
     fmax: float = 1e-4
     max_iterations: int = 100
     max_step: float = 0.3
+    #: exact Hessian refresh every this many accepted steps (0: never)
     hessian_every: int = 5
+    #: "exact": start from the exact pair Hessian and refresh it when the model goes stale
+    #: (few iterations; a Hessian costs about 2.5 x 3P gradient evaluations); "bfgs": start
+    #: from a scaled identity (Shanno-Phua scaling at the first step) and use damped BFGS
+    #: updates only, halving rejected steps (more iterations, each one gradient evaluation)
+    initial_hessian: str = "exact"
+    #: curvature (eV/Å^2) of the identity model before the first step when ``"bfgs"``
+    initial_curvature: float = 10.0
     #: Hessian probes per vectorised batch are limited so that probes x (edges x filters +
     #: particles x features) stays below this many elements (bounds memory to ~2 GB)
     probe_budget: float = 6e6
@@ -160,7 +168,22 @@ def relax_pairs(
         if not hasattr(opts, k):
             raise TypeError(f"unknown relaxation option {k!r}")
         setattr(opts, k, v)
+    if opts.initial_hessian not in ("exact", "bfgs"):
+        raise ValueError(f"initial_hessian must be 'exact' or 'bfgs', not {opts.initial_hessian!r}")
     structures = list(structures)
+    # frozen parameters: no parameter gradients are needed, and the SchNet then uses its
+    # cheaper frozen-weight evaluation (see emlpack.nn.schnet)
+    grad_flags = [(p, p.requires_grad) for p in model.parameters()]
+    for p, _ in grad_flags:
+        p.requires_grad_(False)
+    try:
+        return _relax(model, structures, opts, bounds)
+    finally:
+        for p, flag in grad_flags:
+            p.requires_grad_(flag)
+
+
+def _relax(model, structures, opts, bounds) -> list[RelaxResult]:
     dtype = torch.float64
     g = model.graph(structures, dtype=dtype)
     prob = _PairProblem(model, g)
@@ -188,10 +211,18 @@ def relax_pairs(
     iters = torch.zeros(b, dtype=torch.long)
     fmax = prob.per_structure_max_norm(projected(grad, x))
     converged = (fmax < opts.fmax) | (g.n_pairs == 0)
-    hessian = prob.hessians(x, opts.probe_budget) if not bool(converged.all()) else None
-    if hessian is not None:
+    exact_mode = opts.initial_hessian == "exact"
+    m = 3 * prob.n_max
+    if not exact_mode:
+        hessian = opts.initial_curvature * torch.eye(m, dtype=dtype).repeat(b, 1, 1)
+    elif not bool(converged.all()):
+        hessian = prob.hessians(x, opts.probe_budget)
         n_hess += (~converged).long()
+    else:
+        hessian = None
+    # "fresh": the model is the exact Hessian (or, in BFGS mode, always: never refreshed)
     fresh = torch.zeros(b, dtype=torch.bool) | (hessian is not None)
+    first = torch.full((b,), not exact_mode)
     since_exact = torch.zeros(b, dtype=torch.long)
     alpha = torch.ones(b, dtype=dtype)
     stalled = torch.zeros(b, dtype=torch.bool)
@@ -200,10 +231,14 @@ def relax_pairs(
         active = ~converged & ~stalled
         if not bool(active.any()):
             break
-        # regularised Newton direction from the eigen-decomposition of the model Hessian
-        evals, evecs = torch.linalg.eigh(hessian)
-        shift = torch.clamp(1e-2 - evals[:, :1], min=0.0)
+        # regularised projected-Newton direction: coordinates held at a bound by the gradient
+        # are fixed (their rows/columns replaced by the identity), the rest see the model Hessian
         gp = prob.pad(projected(grad, x))
+        held = prob.pad(((x <= lower) | (x >= upper)) & (projected(grad, x) == 0)) > 0
+        free = (~held).to(dtype)
+        reduced = hessian * free[:, :, None] * free[:, None, :] + torch.diag_embed(held.to(dtype))
+        evals, evecs = torch.linalg.eigh(reduced)
+        shift = torch.clamp(1e-2 - evals[:, :1], min=0.0)
         coef = (evecs.transpose(1, 2) @ gp[:, :, None]).squeeze(-1) / (evals + shift)
         step = -prob.unpad((evecs @ coef[:, :, None]).squeeze(-1))
         longest = prob.per_structure_max_norm(step)
@@ -222,6 +257,15 @@ def relax_pairs(
         if bool(accept.any()):
             s = prob.pad(step)
             y = prob.pad(g_new - grad)
+            scale_first = accept & first
+            if bool(scale_first.any()):
+                # Shanno-Phua: rescale the identity start to the observed curvature
+                sy = (s * y).sum(1)
+                yy = (y * y).sum(1)
+                c = torch.where(sy > 1e-20, yy / torch.clamp(sy, min=1e-20), opts.initial_curvature)
+                eye = torch.eye(hessian.shape[1], dtype=dtype)
+                hessian = torch.where(scale_first[:, None, None], c[:, None, None] * eye, hessian)
+                first &= ~accept
             hessian = torch.where(
                 accept[:, None, None], _damped_bfgs(hessian, s, y), hessian
             )
@@ -231,13 +275,17 @@ def relax_pairs(
             energy = torch.where(accept, e_new, energy)
             alpha = torch.where(accept, torch.ones_like(alpha), alpha)
             since_exact += accept.long()
-            fresh &= ~accept
+            if exact_mode:
+                fresh &= ~accept
         # rejected: halve the step; with a stale model, first refresh the exact Hessian
         alpha = torch.where(reject & fresh, alpha * 0.5, alpha)
         stalled |= reject & (alpha < 1e-6)
         fmax = prob.per_structure_max_norm(projected(grad, x))
         converged = converged | (fmax < opts.fmax)
-        refresh = ~converged & ~stalled & ((reject & ~fresh) | (since_exact >= opts.hessian_every))
+        due = since_exact >= opts.hessian_every if opts.hessian_every > 0 else ~active
+        refresh = ~converged & ~stalled & ((reject & ~fresh) | due)
+        if not exact_mode:
+            refresh &= False
         if bool(refresh.any()):
             exact = prob.hessians(x, opts.probe_budget)
             hessian = torch.where(refresh[:, None, None], exact, hessian)
@@ -249,10 +297,13 @@ def relax_pairs(
     if opts.check_curvature and prob.n_max:
         exact = prob.hessians(x, opts.probe_budget)
         n_hess += 1
-        mask = torch.arange(3 * prob.n_max)[None, :] < 3 * g.n_pairs[:, None]
+        # curvature over the coordinates that are free (not held at a box bound)
+        held = prob.pad(((x <= lower) | (x >= upper)) & (projected(grad, x) == 0)) > 0
+        mask = (torch.arange(3 * prob.n_max)[None, :] < 3 * g.n_pairs[:, None]) & ~held
         big = torch.where(mask[:, :, None] & mask[:, None, :], exact, 0.0)
         big = big + torch.diag_embed(torch.where(mask, 0.0, 1e30))
         min_curv = torch.linalg.eigvalsh(big)[:, 0]
+        min_curv = torch.where(mask.any(1), min_curv, torch.nan)
 
     return _results(structures, prob, x, energy, grad, converged, iters, n_eval, n_hess,
                     fmax, min_curv, opts)
