@@ -72,7 +72,111 @@ def _add_convert_reference(sub) -> None:
     p.set_defaults(func=run)
 
 
-COMMANDS = [_add_demo, _add_relabel, _add_convert_reference]
+def _add_label(sub) -> None:
+    p = sub.add_parser(
+        "label", help="sample molecules and label them with DFT into an HDF5 store (resumable)"
+    )
+    p.add_argument("input", help="SMILES CSV (column 'smiles'), SMILES list, or xyz molecules")
+    p.add_argument("-o", "--output", required=True, help="HDF5 dataset store (appended to)")
+    p.add_argument("--recipe", help="sampling recipe YAML (default: the paper's eQM7 recipe)")
+    p.add_argument("--level", help="labeling level: preset (paper, quick, tiny) or xc/basis")
+    p.add_argument("--molecules", help="slice of the input entries, e.g. 0:3")
+    p.add_argument("--samples-per-molecule", type=int,
+                   help="rescale the recipe's counts to this total per molecule")
+    p.add_argument("--scheduler", help="address of an existing Dask scheduler")
+    p.add_argument("--workers", type=int,
+                   help="LocalCluster workers (default: CPU count; 0 = in-process)")
+    p.add_argument("--retry-failed", action="store_true", help="label recorded failures again")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("overrides", nargs="*", help="recipe overrides key=value (e.g. seed=3)")
+
+    def run(args):
+        from emlpack.data.store import StoreError
+        from emlpack.qm.labeling import read_molecules, run_labeling
+        from emlpack.qm.recipe import load_recipe
+        from emlpack.qm.sampling import SamplingError
+
+        try:
+            overrides = list(args.overrides)
+            if args.level:
+                overrides.append(f"level={args.level}")
+            recipe = load_recipe(args.recipe, overrides, args.samples_per_molecule)
+            sources, skipped = read_molecules(args.input, args.molecules)
+            summary = run_labeling(sources, args.output, recipe, scheduler=args.scheduler,
+                                   workers=args.workers, progress=not args.quiet,
+                                   retry_failed=args.retry_failed, skipped=skipped)
+        except (SamplingError, StoreError, ValueError) as exc:
+            print(f"emlp label: error: {exc}", file=sys.stderr)
+            return 2
+        print(summary.text())
+        return 0
+
+    p.set_defaults(func=run)
+
+
+def _add_train(sub) -> None:
+    p = sub.add_parser("train", help="train an eMLP (YAML config + key=value overrides;"
+                       " data parallel under torchrun)")
+    p.add_argument("config", help="YAML config, e.g. configs/small_cpu.yaml")
+    p.add_argument("overrides", nargs="*", help="key=value overrides, e.g. training.max_epochs=5")
+    p.add_argument("--seeds", type=int, nargs="+", help="train an ensemble, one model per seed")
+    p.add_argument("--restart", action="store_true",
+                   help="start afresh instead of resuming from <output.dir>/last.pt")
+
+    def run(args):
+        from emlpack.data.dataset import DataError
+        from emlpack.data.references import ReferenceError
+        from emlpack.train.config import ConfigError, load_config
+        from emlpack.train.trainer import train, train_ensemble
+
+        try:
+            cfg = load_config(args.config, args.overrides)
+            if args.seeds:
+                paths = train_ensemble(cfg, args.seeds, resume=not args.restart)
+            else:
+                paths = [train(cfg, resume=not args.restart)]
+        except (ConfigError, DataError, ReferenceError) as exc:
+            print(f"emlp train: error: {exc}", file=sys.stderr)
+            return 2
+        print("best model(s): " + " ".join(str(p) for p in paths))
+        return 0
+
+    p.set_defaults(func=run)
+
+
+def _add_evaluate(sub) -> None:
+    p = sub.add_parser("evaluate", help="static/dynamic error tables and parity plots of"
+                       " trained model(s) (an ensemble gives mean ± std)")
+    p.add_argument("paths", nargs="+", metavar="MODEL... DATA",
+                   help="one or more model checkpoints, then the data (extxyz or .h5)")
+    p.add_argument("--subset", default="test", choices=["test", "val", "train", "all"],
+                   help="subset of the data (the split stored with the model)")
+    p.add_argument("-o", "--output", default="evaluation", help="output directory")
+    p.add_argument("--no-dynamic", action="store_true", help="skip the pair relaxations")
+    p.add_argument("--max-structures", type=int, help="evaluate at most this many")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    def run(args):
+        from emlpack.train.evaluate import evaluate_models
+
+        if len(args.paths) < 2:
+            print("emlp evaluate: error: give MODEL [MODEL ...] DATA", file=sys.stderr)
+            return 2
+        try:
+            table, _ = evaluate_models(args.paths[:-1], args.paths[-1], args.output,
+                                       args.subset, not args.no_dynamic, args.max_structures,
+                                       progress=not args.quiet)
+        except (ValueError, OSError) as exc:
+            print(f"emlp evaluate: error: {exc}", file=sys.stderr)
+            return 2
+        print(table)
+        print(f"wrote {args.output}/evaluation.md, evaluation.json, parity.png")
+        return 0
+
+    p.set_defaults(func=run)
+
+
+COMMANDS = [_add_train, _add_evaluate, _add_demo, _add_relabel, _add_convert_reference, _add_label]
 
 
 def main(argv: list[str] | None = None) -> int:

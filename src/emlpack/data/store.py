@@ -90,7 +90,10 @@ class DatasetStore:
                 _create_layout(f)
             os.replace(tmp, self.path)
         try:
-            self._file = h5py.File(self.path, "r" if self.mode == "r" else "r+")
+            if self.mode == "r":  # readers may look at a store that is being written
+                self._file = h5py.File(self.path, "r", locking=False)
+            else:
+                self._file = h5py.File(self.path, "r+")
         except OSError as exc:
             raise StoreError(f"{self.path}: cannot open as an HDF5 dataset store: {exc}") from None
         self._pid = os.getpid()

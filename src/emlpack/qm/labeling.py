@@ -1,0 +1,450 @@
+"""``emlp label``: molecules -> preparation -> sampling -> DFT labels -> HDF5 store, on Dask.
+
+Flow per molecule: 3D structure (RDKit from SMILES, or xyz), optimisation and Hessian at the
+preparation level (cached beside the store in ``STORE.prep/``), the recipe's configurations,
+one labeling task per configuration. Tasks run on a Dask ``LocalCluster`` by default, on any
+Dask cluster with ``scheduler=ADDRESS``, or in-process with ``workers=0``. Results are written
+by this process only, one committed record at a time (see :mod:`emlpack.data.store`).
+
+Resuming: the store knows which keys are finished (records and recorded failures); a re-run of
+the same command skips them, so after a crash (even ``kill -9``) no finished work is lost and
+nothing is stored twice. The recipe is saved in the store, and a resumed run must use the same.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import re
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from emlpack.data.store import DatasetStore, StoreError
+from emlpack.qm.levels import parse_level
+from emlpack.qm.pyscf_labeler import LabelingError, PySCFLabeler
+from emlpack.qm.recipe import Configuration, configurations
+from emlpack.qm.sampling import PROBES, Molecule, SamplingError, molecule_from_smiles
+from emlpack.units import ANGSTROM_IN_BOHR, HARTREE
+
+#: SMILES of the hydride references
+HYDRIDES = {"H2": "[H][H]", "CH4": "C", "NH3": "N", "H2O": "O"}
+
+
+# ---------------------------------------------------------------------------------- sources
+def read_molecules(path: str | Path, select: str | None = None) -> tuple[list, list[str]]:
+    """Molecule sources from a SMILES CSV (column ``smiles``), a SMILES list or an xyz file.
+
+    Returns ``(sources, skipped)`` where each source is ``(name, smiles)`` or a
+    :class:`Molecule` (xyz input) and ``skipped`` lists reasons for entries left out.
+    ``select`` is a Python slice over the entries, e.g. ``"0:3"``.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise SamplingError(f"{path}: file not found")
+    sources: list = []
+    if path.suffix.lower() in (".xyz", ".extxyz"):
+        from ase.io import read
+
+        for i, atoms in enumerate(read(str(path), index=":")):
+            sources.append(_molecule_from_atoms(atoms, f"{path.stem}-{i:04d}",
+                                                f"{path}, frame {i}"))
+    elif path.suffix.lower() == ".csv":
+        with path.open() as fh:
+            reader = csv.DictReader(fh)
+            if "smiles" not in (reader.fieldnames or []):
+                raise SamplingError(f"{path}: CSV needs a 'smiles' column")
+            for i, row in enumerate(reader):
+                sources.append((row.get("name") or f"{path.stem}-{i:04d}", row["smiles"]))
+    else:
+        for i, line in enumerate(path.read_text().splitlines()):
+            parts = line.split()
+            if parts and not parts[0].startswith("#"):
+                sources.append((parts[1] if len(parts) > 1 else f"{path.stem}-{i:04d}", parts[0]))
+    if select:
+        sources = sources[_parse_slice(select)]
+    skipped = []
+    kept = []
+    for src in sources:
+        if isinstance(src, tuple) and re.search(r"[Ss]", src[1].replace("Si", "")):
+            skipped.append(f"{src[0]}: contains sulfur (out of scope)")
+            continue
+        kept.append(src)
+    return kept, skipped
+
+
+def _parse_slice(text: str) -> slice:
+    parts = [int(p) if p.strip() else None for p in text.split(":")]
+    if len(parts) == 1:
+        return slice(parts[0], parts[0] + 1)
+    return slice(*parts)
+
+
+def _molecule_from_atoms(atoms, name: str, source: str) -> Molecule:
+    from rdkit import Chem
+    from rdkit.Chem import rdDetermineBonds
+
+    numbers = atoms.numbers[atoms.numbers != 99]
+    pos = atoms.positions[atoms.numbers != 99]
+    block = f"{len(numbers)}\n\n" + "".join(
+        f"{Chem.GetPeriodicTable().GetElementSymbol(int(z))} {x:.8f} {y:.8f} {w:.8f}\n"
+        for z, (x, y, w) in zip(numbers, pos, strict=True)
+    )
+    mol = Chem.MolFromXYZBlock(block)
+    try:
+        rdDetermineBonds.DetermineBonds(mol, charge=0)
+    except Exception as exc:  # noqa: BLE001
+        raise SamplingError(f"{source}: cannot determine bonds: {exc}") from None
+    order = {Chem.BondType.SINGLE: 1, Chem.BondType.DOUBLE: 2, Chem.BondType.TRIPLE: 3}
+    bonds = np.array([(b.GetBeginAtomIdx(), b.GetEndAtomIdx(), order.get(b.GetBondType(), 4))
+                      for b in mol.GetBonds()], dtype=np.int64).reshape(-1, 3)
+    ring = np.array([b.IsInRing() for b in mol.GetBonds()], dtype=bool)
+    return Molecule(name=name, numbers=numbers, positions=pos, bonds=bonds, ring_bonds=ring)
+
+
+# ---------------------------------------------------------------------------------- tasks
+class _LabelerCalculator:
+    """A minimal ASE calculator (energy, forces at zero field) over :class:`PySCFLabeler`."""
+
+    def __new__(cls, labeler: PySCFLabeler):
+        from ase.calculators.calculator import CalculationFailed, Calculator, all_changes
+
+        class _Calc(Calculator):
+            implemented_properties = ["energy", "forces"]
+
+            def calculate(self, atoms=None, properties=("energy",), system_changes=all_changes):
+                super().calculate(atoms, properties, system_changes)
+                res = labeler(self.atoms.numbers, self.atoms.positions, localize=False)
+                if not res.ok:
+                    raise CalculationFailed(res.error)
+                self.results = {"energy": res.energy, "forces": res.forces}
+
+        return _Calc()
+
+
+def pyscf_hessian(labeler: PySCFLabeler, numbers, positions) -> np.ndarray:
+    """Analytic Cartesian Hessian (eV/Å^2) at zero field, shape (3n, 3n)."""
+    mol, mf = labeler.build(numbers, positions, np.zeros(3), 0.0)
+    mf.kernel()
+    if not mf.converged:
+        raise LabelingError("SCF not converged in the Hessian calculation")
+    hess = mf.Hessian()
+    hess.verbose = 0
+    h = np.asarray(hess.kernel())  # (n, n, 3, 3) Ha/bohr^2
+    n = len(numbers)
+    return h.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n) * HARTREE * ANGSTROM_IN_BOHR**2
+
+
+def prepare_task(source, level: str, optimize: bool, fmax: float, seed: int,
+                 threads: int | None = None) -> Molecule:
+    """Build (SMILES), optimise and compute the Hessian of one molecule (runs on a worker)."""
+    mol = source if isinstance(source, Molecule) else molecule_from_smiles(
+        source[1], name=source[0], seed=seed)
+    labeler = PySCFLabeler(level, threads=threads)
+    pos = mol.positions
+    if optimize and len(mol.numbers) > 1:
+        from ase import Atoms
+        from ase.optimize import BFGS
+
+        atoms = Atoms(numbers=mol.numbers, positions=pos)
+        atoms.calc = _LabelerCalculator(labeler)
+        opt = BFGS(atoms, logfile=None)
+        if not opt.run(fmax=fmax, steps=300):
+            raise SamplingError(f"{mol.name}: geometry optimisation did not converge")
+        pos = atoms.positions.copy()
+    mol.positions = pos
+    mol.hessian = pyscf_hessian(labeler, mol.numbers, pos)
+    return mol
+
+
+def label_task(config: Configuration, level: str, boys_starts: int, seed: int,
+               threads: int | None = None):
+    """Label one configuration (runs on a worker); returns (config, LabelResult)."""
+    labeler = PySCFLabeler(level, boys_starts=boys_starts, seed=seed, threads=threads)
+    return config, labeler(config.numbers, config.positions, config.field, config.charge)
+
+
+# ---------------------------------------------------------------------------------- executors
+class _SerialPool:
+    """In-process stand-in for a Dask client: tasks run when their result is asked for."""
+
+    class _Task:
+        def __init__(self, fn, args):
+            self.fn, self.args = fn, args
+
+        def result(self):
+            return self.fn(*self.args)
+
+    def submit(self, fn, *args, **_):
+        return self._Task(fn, args)
+
+    def close(self):
+        pass
+
+
+class _Completion:
+    """``as_completed`` over a growing set of futures (Dask or serial)."""
+
+    def __init__(self, dask: bool):
+        self._tags: dict = {}
+        if dask:
+            from distributed import as_completed
+
+            self._ac = as_completed()
+        else:
+            self._ac = None
+            self._queue: list = []
+
+    def add(self, future, tag) -> None:
+        self._tags[self._id(future)] = tag
+        if self._ac is not None:
+            self._ac.add(future)
+        else:
+            self._queue.append(future)
+
+    def _id(self, future):
+        return future.key if self._ac is not None else id(future)
+
+    def tag(self, future):
+        """The tag given to ``future`` in :meth:`add` (forgotten after this call)."""
+        return self._tags.pop(self._id(future))
+
+    def __iter__(self) -> Iterator:
+        if self._ac is not None:
+            yield from self._ac
+        else:
+            while self._queue:
+                yield self._queue.pop(0)
+
+
+def _dask_client(scheduler: str | None, workers: int):
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        return Client(scheduler)
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                           dashboard_address=None, silence_logs=40)
+    return Client(cluster)
+
+
+# ---------------------------------------------------------------------------------- driver
+@dataclass
+class LabelingSummary:
+    store: str
+    n_records: int = 0
+    n_new: int = 0
+    n_failed_new: int = 0
+    n_skipped_done: int = 0
+    skipped_molecules: list[str] = field(default_factory=list)
+    failures: list[str] = field(default_factory=list)
+    wall_time: float = 0.0
+
+    def text(self) -> str:
+        lines = [
+            f"{self.store}: {self.n_records} records ({self.n_new} new, {self.n_failed_new} new"
+            f" failures, {self.n_skipped_done} already done) in {self.wall_time:.1f} s"
+        ]
+        lines += [f"skipped molecule {s}" for s in self.skipped_molecules]
+        lines += [f"failed {s}" for s in self.failures[:20]]
+        if len(self.failures) > 20:
+            lines.append(f"... and {len(self.failures) - 20} more failures")
+        return "\n".join(lines)
+
+
+def expected_keys(name: str, recipe: dict) -> list[str]:
+    return [f"{name}/{s['kind']}/{i:04d}" for s in recipe["samples"] for i in range(s["count"])]
+
+
+def _save_prepared(prep_dir: Path, mol: Molecule, level: str) -> None:
+    prep_dir.mkdir(parents=True, exist_ok=True)
+    final = prep_dir / f"{mol.name}.npz"
+    tmp = prep_dir / f".{mol.name}.{os.getpid()}.tmp.npz"
+    np.savez(tmp, numbers=mol.numbers, positions=mol.positions, bonds=mol.bonds,
+             ring_bonds=mol.ring_bonds, hessian=mol.hessian, smiles=mol.smiles, level=level)
+    os.replace(tmp, final)
+
+
+def _load_prepared(prep_dir: Path, name: str, level: str) -> Molecule | None:
+    path = prep_dir / f"{name}.npz"
+    if not path.exists():
+        return None
+    with np.load(path) as d:
+        if str(d["level"]) != level:
+            return None
+        return Molecule(name=name, numbers=d["numbers"], positions=d["positions"],
+                        bonds=d["bonds"], ring_bonds=d["ring_bonds"], hessian=d["hessian"],
+                        smiles=str(d["smiles"]))
+
+
+def run_labeling(
+    sources: list,
+    store_path: str | Path,
+    recipe: dict,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    progress: bool = True,
+    retry_failed: bool = False,
+    skipped: list[str] | None = None,
+) -> LabelingSummary:
+    """Label ``sources`` (``(name, smiles)`` or :class:`Molecule`) into the store.
+
+    Args:
+        recipe: a resolved recipe (see :mod:`emlpack.qm.recipe`).
+        scheduler: address of an existing Dask scheduler; None starts a ``LocalCluster``.
+        workers: LocalCluster workers (default: CPU count); 0 runs everything in-process.
+        retry_failed: label again the keys recorded as failed.
+    """
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    store_path = Path(store_path)
+    level = parse_level(recipe.get("level")).name
+    prep = recipe.get("prepare", {}) or {}
+    prep_level = parse_level(prep.get("level") or recipe.get("level")).name
+    seed = int(recipe.get("seed", 0))
+    boys = int(recipe.get("boys_starts", 3))
+    recipe_text = yaml.safe_dump(recipe, sort_keys=True)
+
+    store = DatasetStore(store_path, "a")
+    old = store.metadata.get("recipe")
+    if old is not None and old != recipe_text:
+        store.close()
+        raise StoreError(
+            f"{store_path}: was labeled with a different recipe; use a new store or the same"
+            f" recipe (stored recipe:\n{old})"
+        )
+    store.set_metadata(recipe=recipe_text, level=level)
+    done = set(store.keys()) if retry_failed else store.done_keys()
+    summary = LabelingSummary(str(store_path), skipped_molecules=list(skipped or []))
+
+    names = [s.name if isinstance(s, Molecule) else s[0] for s in sources]
+    if len(set(names)) != len(names):
+        raise SamplingError("molecule names must be unique")
+    todo = {}
+    for src, name in zip(sources, names, strict=True):
+        keys = [k for k in expected_keys(name, recipe) if k not in done]
+        summary.n_skipped_done += len(expected_keys(name, recipe)) - len(keys)
+        if keys:
+            todo[name] = (src, set(keys))
+    hydride_keys = {}
+    if recipe.get("hydrides"):
+        for h, smi in HYDRIDES.items():
+            key = f"hydride/{h}/0000"
+            if key in done:
+                summary.n_skipped_done += 1
+            else:
+                hydride_keys[h] = (key, smi)
+    need_probes = bool(todo) and any(s.get("dimer") for s in recipe["samples"])
+    total = sum(len(k) for _, k in todo.values()) + len(hydride_keys)
+
+    n_workers = (os.cpu_count() or 1) if workers is None else int(workers)
+    use_dask = bool(scheduler) or n_workers > 0
+    threads = max(1, (os.cpu_count() or 1) // max(n_workers, 1)) if use_dask else None
+    client = _dask_client(scheduler, n_workers) if use_dask else _SerialPool()
+    prep_dir = Path(str(store_path) + ".prep")
+    bar = tqdm(total=total, desc="label", unit="conf", disable=not progress, file=sys.stderr)
+    try:
+        ac = _Completion(use_dask)
+
+        def submit_prepare(src, name):
+            cached = _load_prepared(prep_dir, name, prep_level)
+            if cached is not None:
+                fut = client.submit(_identity, cached, pure=False)
+            else:
+                fut = client.submit(prepare_task, src, prep_level, bool(prep.get("optimize",
+                                    True)), float(prep.get("fmax", 0.01)), seed, threads,
+                                    pure=False)
+            ac.add(fut, ("prep", name))
+
+        probes: dict[str, Molecule] = {}
+        if need_probes:
+            for pname in recipe.get("dimer", {}).get("probes", list(PROBES)):
+                submit_prepare((f"probe-{pname}", PROBES[pname]), f"probe-{pname}")
+        else:
+            for name, (src, _) in todo.items():
+                submit_prepare(src, name)
+        for h, (_key, smi) in hydride_keys.items():
+            submit_prepare((f"hydride-{h}", smi), f"hydride-{h}")
+        waiting_probes = len(recipe.get("dimer", {}).get("probes", PROBES)) if need_probes else 0
+
+        for fut in ac:
+            kind, name = ac.tag(fut)
+            if kind == "prep":
+                try:
+                    mol = fut.result()
+                except Exception as exc:  # noqa: BLE001 - recorded, the run goes on
+                    reason = f"preparation failed: {type(exc).__name__}: {exc}"
+                    if name.startswith("probe-"):
+                        raise SamplingError(f"dimer probe {name}: {reason}") from exc
+                    keys = (
+                        todo[name][1] if name in todo
+                        else {hydride_keys[name.split("-", 1)[1]][0]}
+                    )
+                    store.add_failures({"key": k, "molecule_id": name,
+                                        "kind": k.split("/")[1], "reason": reason}
+                                       for k in sorted(keys))
+                    summary.n_failed_new += len(keys)
+                    summary.failures.append(f"{name}: {reason}")
+                    bar.update(len(keys))
+                    continue
+                _save_prepared(prep_dir, mol, prep_level)
+                if name.startswith("probe-"):
+                    probes[name.removeprefix("probe-")] = mol
+                    mol.name = name.removeprefix("probe-")
+                    waiting_probes -= 1
+                    if waiting_probes == 0:
+                        for mname, (src, _) in todo.items():
+                            submit_prepare(src, mname)
+                    continue
+                if name.startswith("hydride-"):
+                    h = name.removeprefix("hydride-")
+                    conf = Configuration(hydride_keys[h][0], h, "hydride", mol.numbers,
+                                         mol.positions, np.zeros(3))
+                    ac.add(client.submit(label_task, conf, level, boys, seed, threads,
+                                         pure=False), ("label", name))
+                    continue
+                try:
+                    confs = configurations(mol, recipe, probes, skip=done)
+                except SamplingError as exc:
+                    keys = todo[name][1]
+                    store.add_failures({"key": k, "molecule_id": name,
+                                        "kind": k.split("/")[1], "reason": str(exc)}
+                                       for k in sorted(keys))
+                    summary.n_failed_new += len(keys)
+                    bar.update(len(keys))
+                    continue
+                for conf in confs:
+                    ac.add(client.submit(label_task, conf, level, boys, seed, threads,
+                                         pure=False), ("label", conf.key))
+            else:
+                conf, res = fut.result()
+                if res.ok:
+                    s = res.to_structure(source=conf.key, info={
+                        "key": conf.key, "molecule_id": conf.molecule_id, "kind": conf.kind,
+                    })
+                    store.append(s)
+                    summary.n_new += 1
+                    if conf.kind == "hydride":
+                        store.set_reference(conf.molecule_id, res.energy, res.level)
+                else:
+                    store.add_failures([{"key": conf.key, "molecule_id": conf.molecule_id,
+                                         "kind": conf.kind, "reason": res.error}])
+                    summary.n_failed_new += 1
+                    summary.failures.append(f"{conf.key}: {res.error}")
+                bar.update(1)
+    finally:
+        bar.close()
+        client.close()
+        summary.n_records = len(store)
+        store.close()
+    summary.wall_time = time.perf_counter() - t0
+    return summary
+
+
+def _identity(x):
+    return x
