@@ -88,7 +88,9 @@ def _add_label(sub) -> None:
                    help="LocalCluster workers (default: CPU count; 0 = in-process)")
     p.add_argument("--retry-failed", action="store_true", help="label recorded failures again")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("overrides", nargs="*", help="recipe overrides key=value (e.g. seed=3)")
+    p.add_argument("-s", "--set", dest="overrides", action="append", default=[],
+                   metavar="KEY=VALUE",
+                   help="recipe override, repeatable (e.g. -s seed=3 -s prepare.optimize=false)")
 
     def run(args):
         from emlpack.data.store import StoreError

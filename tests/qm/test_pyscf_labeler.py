@@ -54,6 +54,8 @@ def test_first_three_frames_of_each_molecule(tmp_path, first):
     index = f"{first}:{first + 3}"
     assert main(["relabel", str(src), "-o", str(out), "--index", index, "--quiet"]) == 0
     errors = np.array(_check_relabeled(src, out, index))
+    print(f"frames {index}: max |dE| {errors[:, 0].max():.2e} eV, max |dF| {errors[:, 1].max():.2e}"
+          f" eV/Å, max centre {errors[:, 2].max():.2e} Å")
     assert errors[:, 0].max() < TOL_E and errors[:, 1].max() < TOL_F, errors
     # ethyne (300..): the C≡C banana-bond centres may rotate about the axis (data/README.md)
     assert errors[:, 2].max() < (0.15 if first == 300 else TOL_C), errors
