@@ -188,3 +188,23 @@ def test_three_qm7_molecules_ten_samples_quick_preset_with_kill(tmp_path):
         proc.wait()
     subprocess.run(cmd, env=env, check=True, timeout=7200)
     _check_store(store, 30, level="pbe0/6-31g*")
+
+
+def test_read_molecules_from_csv_smiles_and_xyz(tmp_path):
+    from emlpack.qm.labeling import read_molecules
+
+    csv = tmp_path / "m.csv"
+    csv.write_text("smiles,target\nC,1\nCS,2\n[H]OC([H])([H])C([H])([H])[H],3\n")
+    sources, skipped = read_molecules(csv)
+    assert [s[0] for s in sources] == ["m-0000", "m-0002"]
+    assert skipped == ["m-0001: contains sulfur (out of scope)"]
+    assert read_molecules(csv, "1:")[0][0][0] == "m-0002"
+    xyz = tmp_path / "ethanol.xyz"
+    xyz.write_text(
+        "9\n\nC -0.0011 -0.0034 0.0\nC 1.5127 0.0120 0.0\nO 1.9594 1.3537 0.0\n"
+        "H -0.3819 -1.0279 0.0\nH -0.3897 0.5098 0.8840\nH -0.3897 0.5098 -0.8840\n"
+        "H 1.8980 -0.5000 0.8800\nH 1.8980 -0.5000 -0.8800\nH 2.9230 1.3400 0.0\n"
+    )
+    (mol,), _ = read_molecules(xyz)
+    assert mol.name == "ethanol-0000" and len(mol.bonds) == 8
+    assert len(mol.rotatable_bonds()) == 2
