@@ -1,0 +1,1 @@
+"""Training and evaluation: the paper's loss, the (DDP) trainer, ensembles, error tables."""

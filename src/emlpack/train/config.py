@@ -1,0 +1,124 @@
+"""Training configuration: YAML file + ``key=value`` overrides, resolved and validated.
+
+Keys are nested sections (``data``, ``model``, ``augmentation``, ``loss``, ``training``,
+``output``); an override names its key with dots, e.g. ``training.max_epochs=5`` or
+``model.n_features=64``; values are parsed as YAML (``1e-3``, ``true``, ``[0.8, 0.1, 0.1]``).
+Unknown keys are errors (a misspelt key never slips through silently).
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import yaml
+
+from emlpack.data.augment import AugmentationConfig
+from emlpack.nn.potential import ModelConfig
+from emlpack.train.loss import LossWeights
+
+DEFAULTS: dict = {
+    "data": {
+        "path": None,  # extxyz file or HDF5 store (.h5)
+        "hydrides": None,  # folder with H2.xyz, CH4.xyz, ... and energies_*_hartree.txt
+        "reference": "auto",  # auto | hydrides | constant
+        "split": "molecule",  # molecule | configuration
+        "fractions": [0.9, 0.05, 0.05],
+        "split_seed": 0,
+        "num_workers": 0,
+    },
+    "model": ModelConfig().to_dict(),
+    "augmentation": AugmentationConfig().to_dict(),
+    "loss": LossWeights().to_dict(),
+    "training": {
+        "seed": 0,
+        "dtype": "float32",
+        "batch_size": 64,
+        "lr": 3.0e-4,
+        "adam_eps": 1.0e-7,
+        "decay_factor": 0.5,
+        "decay_epochs": 30.0,
+        "max_epochs": 1000,
+        "max_time_minutes": None,
+        "patience": None,  # early stopping: epochs without improvement (None: off)
+        "threads": None,
+        "eval_batch_size": 64,
+    },
+    "output": {"dir": "runs/emlp", "progress": True, "tensorboard": False},
+}
+
+
+class ConfigError(ValueError):
+    """An invalid configuration file or override."""
+
+
+def parse_override(text: str) -> tuple[list[str], object]:
+    if "=" not in text:
+        raise ConfigError(f"override {text!r}: expected key=value (e.g. training.max_epochs=5)")
+    key, value = text.split("=", 1)
+    try:
+        parsed = yaml.safe_load(value) if value != "" else None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"override {text!r}: value is not valid YAML: {exc}") from None
+    return key.strip().split("."), parsed
+
+
+def merge(base: dict, update: dict, where: str = "") -> dict:
+    """``base`` updated recursively with ``update``; unknown keys raise :class:`ConfigError`."""
+    out = copy.deepcopy(base)
+    for key, value in (update or {}).items():
+        if key not in out:
+            raise ConfigError(f"unknown config key {where + key!r} (known: {sorted(out)})")
+        if isinstance(out[key], dict):
+            if not isinstance(value, dict):
+                raise ConfigError(f"config key {where + key!r} must be a mapping")
+            out[key] = merge(out[key], value, where + key + ".")
+        else:
+            out[key] = value
+    return out
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> dict:
+    """The resolved configuration: defaults <- YAML file <- overrides."""
+    cfg = copy.deepcopy(DEFAULTS)
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"{path}: no such config file")
+        try:
+            loaded = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+        if not isinstance(loaded, dict):
+            raise ConfigError(f"{path}: the top level must be a mapping")
+        cfg = merge(cfg, loaded)
+    for text in overrides or []:
+        keys, value = parse_override(text)
+        update: dict = value  # type: ignore[assignment]
+        for k in reversed(keys):
+            update = {k: update}
+        cfg = merge(cfg, update)
+    validate(cfg)
+    return cfg
+
+
+def validate(cfg: dict) -> None:
+    d, t = cfg["data"], cfg["training"]
+    if d["split"] not in ("molecule", "configuration"):
+        raise ConfigError(f"data.split must be 'molecule' or 'configuration', got {d['split']!r}")
+    if d["reference"] not in ("auto", "hydrides", "constant"):
+        raise ConfigError(f"data.reference must be auto, hydrides or constant, got"
+                          f" {d['reference']!r}")
+    if t["dtype"] not in ("float32", "float64"):
+        raise ConfigError(f"training.dtype must be float32 or float64, got {t['dtype']!r}")
+    for key in ("batch_size", "max_epochs"):
+        if not isinstance(t[key], int) or t[key] < 1:
+            raise ConfigError(f"training.{key} must be a positive integer, got {t[key]!r}")
+    try:
+        ModelConfig.from_dict(cfg["model"])
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"model: {exc}") from None
+
+
+def dump_config(cfg: dict, path: str | Path) -> None:
+    Path(path).write_text(yaml.safe_dump(cfg, sort_keys=False))

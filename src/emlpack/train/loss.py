@@ -1,0 +1,125 @@
+"""The paper's cost function (eq. 18) and validation metrics.
+
+    C = lambda_E / B     sum_b ((E_b - E_tr,b) / N_b)^2              (N_b: cores of b)
+      + lambda_f / 3N    sum_i |F_i - F_tr,i|^2                      (core forces)
+      + lambda_c / 3C    sum_j |f_j - f_tr,j|^2                      (electron-pair forces)
+      + lambda_s / 9B_s  sum_b |sigma_b - sigma_tr,b|^2              (stress in GPa, if labelled)
+
+Each term is a sum divided by a count. :func:`loss_terms` returns the sums and the counts
+separately so that data-parallel training can divide by the *global* counts (then the gradient
+of K processes equals that of one process with the same global batch).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+
+from emlpack.data.dataset import Batch
+from emlpack.units import EV_PER_A3_IN_GPA
+
+TERMS = ("energy", "forces", "pair_forces", "stress")
+
+
+@dataclass
+class LossWeights:
+    """lambda_E (1/eV^2), lambda_f, lambda_c (Å^2/eV^2), lambda_s (1/GPa^2)."""
+
+    energy: float = 1.0
+    forces: float = 1.0
+    pair_forces: float = 1.0
+    stress: float = 0.1
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def predict(model, batch: Batch, reference, stress: bool | None = None,
+            create_graph: bool | None = None) -> dict[str, torch.Tensor]:
+    """Model outputs for ``batch``: ``energy`` (B,) relative to the (live) reference,
+    ``forces`` (N_graph, 3), ``stress`` (B, 3, 3) when requested."""
+    want_stress = bool(batch.has_stress.any()) if stress is None else stress
+    out = model(batch.graph, forces=True, stress=want_stress, create_graph=create_graph)
+    pred = {"energy": reference.correct(out["energy"], batch.coefficients),
+            "energy_raw": out["energy"][: batch.n_structures], "forces": out["forces"]}
+    if want_stress:
+        pred["stress"] = out["stress"][: batch.n_structures]
+    return pred
+
+
+def loss_terms(pred: dict, batch: Batch) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
+    """``term -> (sum of squared errors, count)`` for the four terms of the cost function."""
+    dt = pred["forces"].dtype
+    e = ((pred["energy"] - batch.energy) / batch.n_cores.to(dt)) ** 2
+    terms = {"energy": (e.sum(), torch.tensor(float(len(e)), dtype=dt))}
+    for name, mask in (("forces", batch.core_mask), ("pair_forces", batch.pair_mask)):
+        diff = pred["forces"][mask] - batch.forces[mask]
+        terms[name] = ((diff * diff).sum(), torch.tensor(float(diff.numel()), dtype=dt))
+    if "stress" in pred and bool(batch.has_stress.any()):
+        m = batch.has_stress
+        diff = (pred["stress"][m] - batch.stress[m]) * EV_PER_A3_IN_GPA
+        terms["stress"] = ((diff * diff).sum(), torch.tensor(float(diff.numel()), dtype=dt))
+    else:
+        zero = pred["forces"].sum() * 0.0
+        terms["stress"] = (zero, torch.tensor(0.0, dtype=dt))
+    return terms
+
+
+def combine(terms: dict, weights: LossWeights, counts: dict | None = None) -> torch.Tensor:
+    """``sum_t lambda_t * sum_t / count_t`` (``counts`` overrides, e.g. global counts)."""
+    total = 0.0
+    for name, (s, n) in terms.items():
+        n = counts[name] if counts is not None else n
+        if float(n) > 0:
+            total = total + getattr(weights, name) * s / n
+    return total
+
+
+class Metrics:
+    """Accumulates absolute and squared errors: MAE and RMSE per quantity.
+
+    Energy per core atom (eV/atom), core forces and pair forces per component (eV/Å), stress
+    per component (GPa)."""
+
+    def __init__(self) -> None:
+        self.sums = {t: [0.0, 0.0, 0.0] for t in TERMS}  # abs, sq, count
+
+    def update(self, pred: dict, batch: Batch) -> None:
+        with torch.no_grad():
+            e = (pred["energy"] - batch.energy) / batch.n_cores.to(batch.energy.dtype)
+            self._add("energy", e)
+            self._add("forces", pred["forces"][batch.core_mask] - batch.forces[batch.core_mask])
+            self._add("pair_forces",
+                      pred["forces"][batch.pair_mask] - batch.forces[batch.pair_mask])
+            if "stress" in pred and bool(batch.has_stress.any()):
+                m = batch.has_stress
+                self._add("stress", (pred["stress"][m] - batch.stress[m]) * EV_PER_A3_IN_GPA)
+
+    def _add(self, name: str, diff: torch.Tensor) -> None:
+        d = diff.detach().double().reshape(-1)
+        s = self.sums[name]
+        s[0] += float(d.abs().sum())
+        s[1] += float((d * d).sum())
+        s[2] += float(d.numel())
+
+    def tensor(self) -> torch.Tensor:
+        return torch.tensor([v for t in TERMS for v in self.sums[t]], dtype=torch.float64)
+
+    def load_tensor(self, t: torch.Tensor) -> None:
+        vals = t.tolist()
+        for k, name in enumerate(TERMS):
+            self.sums[name] = vals[3 * k : 3 * k + 3]
+
+    def result(self) -> dict[str, float]:
+        out = {}
+        for name, (a, s, n) in self.sums.items():
+            if n > 0:
+                out[f"{name}_mae"] = a / n
+                out[f"{name}_rmse"] = (s / n) ** 0.5
+        return out
+
+    def loss(self, weights: LossWeights) -> float:
+        """The cost function evaluated with global means over everything accumulated."""
+        return sum(getattr(weights, name) * s / n
+                   for name, (_, s, n) in self.sums.items() if n > 0)

@@ -1,0 +1,375 @@
+"""The trainer: Adam with exponential decay, validation every epoch, best/last checkpoints,
+early stopping, exact resume, CSV log, optional TensorBoard, data parallel with ``torchrun``.
+
+Run directory (``output.dir``)::
+
+    config.yaml   the resolved configuration      split.json   train/val/test indices
+    log.csv       one row per epoch               best.pt      model with the best val. loss
+    last.pt       model + training state (optimizer, scheduler, RNG, epoch, best metric)
+
+Both ``.pt`` files load with :func:`emlpack.nn.checkpoint.load_model` (``weights_only=True``);
+the training state sits in ``metadata["training"]``.
+
+Determinism and resume: the order of the training set in epoch ``e`` is a permutation seeded
+with ``(seed, e)``, and augmentation of configuration ``i`` uses ``(seed, e, i)``. A run killed
+at any point restarts from the end of the last finished epoch (``last.pt`` is written
+atomically) and continues exactly as an uninterrupted run would.
+
+Learning rate: ``lr0 * decay_factor ** (step / (steps_per_epoch * decay_epochs))``, i.e.
+halved every ``decay_epochs`` epochs with the paper's defaults, decayed smoothly per step.
+
+Data parallel: launched with ``torchrun --nproc_per_node K``, every process takes a slice of
+each global batch (same global batches as one process); the loss terms are divided by the
+global counts, so the gradients equal one process's with the same global batch.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+from emlpack.data.augment import AugmentationConfig
+from emlpack.data.dataset import Collater, load_data, make_batch, molecule_id, split_indices
+from emlpack.data.references import (
+    ConstantReference,
+    HydrideReference,
+    ReferenceError,
+    load_hydrides,
+)
+from emlpack.nn.checkpoint import read_checkpoint, save_model
+from emlpack.nn.potential import EMLP, ModelConfig
+from emlpack.train.config import dump_config
+from emlpack.train.loss import TERMS, LossWeights, Metrics, combine, loss_terms, predict
+
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+def build_reference(cfg: dict, structures, train_idx, store_hydrides):
+    """The reference of the run: hydrides (live) or a constant (mean training energy)."""
+    d = cfg["data"]
+    kind = d["reference"]
+    hydrides = None
+    if d["hydrides"]:
+        hydrides = load_hydrides(d["hydrides"])
+    elif store_hydrides is not None:
+        hydrides = (store_hydrides["structures"], store_hydrides["energies"])
+    compositions = {tuple(sorted(structures[i].numbers.tolist())) for i in train_idx}
+    if kind == "auto":
+        kind = "hydrides" if hydrides is not None and len(compositions) > 1 else "constant"
+    if kind == "hydrides":
+        if hydrides is None:
+            raise ReferenceError("reference 'hydrides' needs data.hydrides (a folder) or a"
+                                 " store with labelled hydrides")
+        return HydrideReference(*hydrides)
+    if len(compositions) > 1:
+        raise ReferenceError(
+            f"{d['path']}: {len(compositions)} compositions need the hydride reference"
+            " (set data.hydrides); a constant reference fits one composition only")
+    return ConstantReference(float(np.mean([structures[i].energy for i in train_idx])))
+
+
+class Trainer:
+    """Trains one model from a resolved config (see :mod:`emlpack.train.config`)."""
+
+    def __init__(self, cfg: dict) -> None:
+        self.cfg = cfg
+        t = cfg["training"]
+        self.dist = _init_distributed()
+        self.rank = dist.get_rank() if self.dist else 0
+        self.world = dist.get_world_size() if self.dist else 1
+        if t["threads"]:
+            torch.set_num_threads(int(t["threads"]))
+        self.dtype = DTYPES[t["dtype"]]
+        self.run_dir = Path(cfg["output"]["dir"])
+        self.weights = LossWeights(**cfg["loss"])
+        d = cfg["data"]
+        if not d["path"]:
+            raise ValueError("data.path is not set (extxyz file or HDF5 store)")
+        self.structures, store_hydrides = load_data(d["path"])
+        ids = [molecule_id(s) for s in self.structures]
+        self.split = split_indices(ids, d["fractions"], d["split"], d["split_seed"])
+        if len(self.split["train"]) == 0:
+            raise ValueError(f"{d['path']}: the training split is empty")
+        self.reference = build_reference(cfg, self.structures, self.split["train"],
+                                          store_hydrides)
+        self.model_config = ModelConfig.from_dict(cfg["model"])
+        torch.manual_seed(t["seed"])
+        self.model = EMLP(self.model_config).to(self.dtype)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=t["lr"], eps=t["adam_eps"])
+        self.batch_size = t["batch_size"]
+        self.steps_per_epoch = len(self._epoch_batches(0))
+        decay_steps = max(1e-12, self.steps_per_epoch * float(t["decay_epochs"]))
+        factor = float(t["decay_factor"])
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(
+            self.optimizer, lambda step: factor ** (step / decay_steps))
+        self.ddp = self.model
+        if self.dist:
+            self.ddp = torch.nn.parallel.DistributedDataParallel(self.model)
+        aug = AugmentationConfig(**cfg["augmentation"])
+        c = self.model_config
+        self.collater = Collater(self.reference, c.cutoff, c.gcut, self.dtype,
+                                 aug if aug.enabled else None, seed=t["seed"])
+        self.epoch = 0
+        self.step = 0
+        self.best = math.inf
+        self.best_epoch = -1
+        self.bad_epochs = 0
+        self._val_batches = None
+
+    # ------------------------------------------------------------------ data
+    def _epoch_batches(self, epoch: int) -> list[np.ndarray]:
+        """Global batches of epoch ``epoch``: a seeded permutation of the training set."""
+        train = self.split["train"]
+        rng = np.random.default_rng([self.cfg["training"]["seed"], epoch, 7])
+        order = train[rng.permutation(len(train))]
+        batches = [order[k:k + self.batch_size] for k in range(0, len(order), self.batch_size)]
+        return [b for b in batches if len(b) >= self.world]
+
+    def _local(self, batch: np.ndarray) -> np.ndarray:
+        return batch[self.rank::self.world]
+
+    def _loader(self, epoch: int):
+        self.collater.epoch = epoch
+        items = [[(int(i), self.structures[int(i)]) for i in self._local(b)]
+                 for b in self._epoch_batches(epoch)]
+        workers = int(self.cfg["data"]["num_workers"])
+        if workers <= 0:
+            return (self.collater(x) for x in items)
+        return iter(torch.utils.data.DataLoader(
+            items, batch_size=None, num_workers=workers, collate_fn=self.collater))
+
+    def _validation_batches(self) -> list:
+        if self._val_batches is None:
+            val = self._local(self.split["val"])
+            bs = int(self.cfg["training"]["eval_batch_size"])
+            c = self.model_config
+            self._val_batches = [
+                make_batch([self.structures[int(i)] for i in val[k:k + bs]], self.reference,
+                           c.cutoff, c.gcut, self.dtype, val[k:k + bs].tolist())
+                for k in range(0, len(val), bs)
+            ]
+        return self._val_batches
+
+    # ------------------------------------------------------------------ state
+    def metadata(self, **extra) -> dict:
+        return {"reference": self.reference.to_metadata(), "config": self.cfg,
+                "data_path": str(self.cfg["data"]["path"]),
+                "split": {k: v.tolist() for k, v in self.split.items()},
+                "epoch": self.epoch, **extra}
+
+    def training_state(self) -> dict:
+        return {
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": self.scheduler.state_dict(),
+            "epoch": self.epoch, "step": self.step, "best": self.best,
+            "best_epoch": self.best_epoch, "bad_epochs": self.bad_epochs,
+            "torch_rng": torch.get_rng_state(), "world_size": self.world,
+        }
+
+    def resume(self, path: Path) -> None:
+        payload = read_checkpoint(path)
+        state = payload["metadata"]["training"]
+        self.model.load_state_dict(payload["state_dict"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.epoch, self.step = int(state["epoch"]), int(state["step"])
+        self.best, self.best_epoch = float(state["best"]), int(state["best_epoch"])
+        self.bad_epochs = int(state["bad_epochs"])
+        torch.set_rng_state(state["torch_rng"])
+
+    # ------------------------------------------------------------------ loop
+    def train(self, resume: bool = True) -> Path:
+        """Train until ``max_epochs``, early stopping or the time limit; returns best.pt."""
+        t = self.cfg["training"]
+        out = self.run_dir
+        last = out / "last.pt"
+        if resume and last.exists():
+            self.resume(last)
+            self._print(f"resumed from {last} at epoch {self.epoch}")
+        if self.rank == 0:
+            out.mkdir(parents=True, exist_ok=True)
+            dump_config(self.cfg, out / "config.yaml")
+            (out / "split.json").write_text(json.dumps(
+                {k: v.tolist() for k, v in self.split.items()}))
+            self._trim_log(out / "log.csv")
+        self._print(
+            f"{len(self.structures)} structures: train {len(self.split['train'])}, val"
+            f" {len(self.split['val'])}, test {len(self.split['test'])} (by"
+            f" {self.cfg['data']['split']}); reference {self.reference.kind};"
+            f" {self.model.n_parameters()} parameters; {self.world} process(es)")
+        writer = self._tensorboard()
+        t_start = time.monotonic()
+        limit = t["max_time_minutes"]
+        stop_reason = "max_epochs"
+        while self.epoch < t["max_epochs"]:
+            t0 = time.monotonic()
+            train_stats = self._train_epoch()
+            val = self.validate()
+            self.epoch += 1
+            improved = val["loss"] < self.best
+            if improved:
+                self.best, self.best_epoch, self.bad_epochs = val["loss"], self.epoch, 0
+            else:
+                self.bad_epochs += 1
+            row = {"epoch": self.epoch, "step": self.step,
+                   "lr": self.optimizer.param_groups[0]["lr"], **train_stats,
+                   **{f"val_{k}": v for k, v in val.items()},
+                   "best_epoch": self.best_epoch, "epoch_time": time.monotonic() - t0}
+            if self.rank == 0:
+                if improved:
+                    save_model(self.model, out / "best.pt", self.metadata(val=val))
+                save_model(self.model, last, self.metadata(training=self.training_state()))
+                self._log(out / "log.csv", row)
+                if writer is not None:
+                    for k, v in row.items():
+                        writer.add_scalar(k, v, self.epoch)
+                self._print(
+                    f"epoch {self.epoch}: loss {train_stats['train_loss']:.4g}, val loss"
+                    f" {val['loss']:.4g}, val F MAE {val.get('forces_mae', float('nan')):.4f}"
+                    f" eV/Å, E MAE {1000 * val.get('energy_mae', float('nan')):.2f} meV/atom"
+                    + (" *" if improved else ""))
+            if self.dist:
+                dist.barrier()
+            if t["patience"] is not None and self.bad_epochs >= int(t["patience"]):
+                stop_reason = f"early stopping ({self.bad_epochs} epochs without improvement)"
+                break
+            if limit is not None and time.monotonic() - t_start > 60.0 * float(limit):
+                stop_reason = f"time limit ({limit} min; resume to continue)"
+                break
+        self._print(f"stopped: {stop_reason}; best epoch {self.best_epoch}"
+                    f" (val loss {self.best:.4g})")
+        if writer is not None:
+            writer.close()
+        return out / "best.pt"
+
+    def _train_epoch(self) -> dict:
+        from tqdm import tqdm
+
+        self.model.train()
+        sums = torch.zeros(len(TERMS) + 3, dtype=torch.float64)
+        batches = self._loader(self.epoch)
+        progress = self.cfg["output"]["progress"] and self.rank == 0
+        bar = tqdm(batches, total=self.steps_per_epoch, desc=f"epoch {self.epoch + 1}",
+                   disable=not progress, leave=False, file=sys.stderr)
+        for batch in bar:
+            pred = predict(self.ddp, batch, self.reference)
+            terms = loss_terms(pred, batch)
+            counts = torch.stack([terms[k][1] for k in TERMS]).double()
+            if self.dist:
+                dist.all_reduce(counts)
+            gcounts = dict(zip(TERMS, counts.to(pred["forces"].dtype), strict=True))
+            loss = combine(terms, self.weights, gcounts) * self.world
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            self.optimizer.step()
+            self.scheduler.step()
+            self.step += 1
+            # per-term mean squared errors of this global batch, for the log
+            parts = torch.tensor([float(terms[k][0].detach()) / max(float(counts[n]), 1.0)
+                                  for n, k in enumerate(TERMS)], dtype=torch.float64)
+            stats = torch.cat([parts, torch.tensor(
+                [batch.n_augmented, batch.n_singular, 0.0], dtype=torch.float64)])
+            if self.dist:
+                dist.all_reduce(stats)
+            stats[-1] = sum(getattr(self.weights, k) * stats[n] for n, k in enumerate(TERMS))
+            sums += stats
+            bar.set_postfix(loss=f"{float(stats[-1]):.4g}")
+        n = max(self.steps_per_epoch, 1)
+        out = {f"train_{k}_mse": float(sums[i]) / n for i, k in enumerate(TERMS)}
+        out["train_loss"] = float(sums[-1]) / n
+        out["n_augmented"], out["n_singular"] = int(sums[4]), int(sums[5])
+        return out
+
+    def validate(self) -> dict:
+        self.model.eval()
+        metrics = Metrics()
+        for batch in self._validation_batches():
+            pred = predict(self.model, batch, self.reference, create_graph=False)
+            metrics.update(pred, batch)
+        tensor = metrics.tensor()
+        if self.dist:
+            dist.all_reduce(tensor)
+            metrics.load_tensor(tensor)
+        out = metrics.result()
+        out["loss"] = metrics.loss(self.weights) if out else math.inf
+        return out
+
+    # ------------------------------------------------------------------ output
+    def _print(self, text: str) -> None:
+        if self.rank == 0:
+            print(text, flush=True)
+
+    def _trim_log(self, path: Path) -> None:
+        """Drop rows of epochs after the resumed one (a killed run may have logged them)."""
+        if not path.exists():
+            return
+        with open(path, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        keep = [r for r in rows if int(r["epoch"]) <= self.epoch]
+        if len(keep) != len(rows):
+            with open(path, "w", newline="") as fh:
+                w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+                w.writeheader()
+                w.writerows(keep)
+
+    def _log(self, path: Path, row: dict) -> None:
+        new = not path.exists()
+        with open(path, "a", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=list(row), extrasaction="ignore", restval="")
+            if new:
+                w.writeheader()
+            w.writerow({k: (f"{v:.10g}" if isinstance(v, float) else v) for k, v in row.items()})
+            fh.flush()
+            os.fsync(fh.fileno())
+
+    def _tensorboard(self):
+        if not self.cfg["output"]["tensorboard"] or self.rank != 0:
+            return None
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ImportError:
+            print("tensorboard is not installed (pip install emlpack[tensorboard]);"
+                  " logging to log.csv only", file=sys.stderr)
+            return None
+        return SummaryWriter(str(self.run_dir / "tensorboard"))
+
+
+def _init_distributed() -> bool:
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+        return False
+    if not dist.is_initialized():
+        backend = "nccl" if torch.cuda.is_available() else "gloo"
+        dist.init_process_group(backend)
+    return True
+
+
+def train(cfg: dict, resume: bool = True) -> Path:
+    """Train one model; returns the path of ``best.pt``."""
+    trainer = Trainer(cfg)
+    try:
+        return trainer.train(resume=resume)
+    finally:
+        if trainer.dist and dist.is_initialized():
+            dist.destroy_process_group()
+
+
+def train_ensemble(cfg: dict, seeds: list[int], resume: bool = True) -> list[Path]:
+    """Train one model per seed in ``<output.dir>/seed<k>``; returns their best.pt paths."""
+    import copy
+
+    paths = []
+    for seed in seeds:
+        c = copy.deepcopy(cfg)
+        c["training"]["seed"] = int(seed)
+        c["output"]["dir"] = str(Path(cfg["output"]["dir"]) / f"seed{seed}")
+        paths.append(Trainer(c).train(resume=resume))
+    return paths
