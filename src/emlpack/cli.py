@@ -32,6 +32,9 @@ def _add_relabel(sub) -> None:
                    help="preset (paper, quick, tiny) or xc/basis[/auxbasis|/nodf]")
     p.add_argument("--index", default=":", help="frames to relabel, ASE slice syntax (e.g. 0:3)")
     p.add_argument("--boys-starts", type=int, default=3, help="Foster-Boys starts per frame")
+    p.add_argument("--workers", type=int, default=0,
+                   help="Dask LocalCluster workers (default 0: in this process)")
+    p.add_argument("--scheduler", help="address of an existing Dask scheduler")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
     def run(args):
@@ -40,7 +43,8 @@ def _add_relabel(sub) -> None:
 
         try:
             report = relabel(args.input, args.output, level=args.level, index=args.index,
-                             boys_starts=args.boys_starts, progress=not args.quiet)
+                             boys_starts=args.boys_starts, progress=not args.quiet,
+                             workers=args.workers, scheduler=args.scheduler)
         except (RefXYZError, ValueError) as exc:
             print(f"emlp relabel: error: {exc}", file=sys.stderr)
             return 2

@@ -122,7 +122,9 @@ def test_failed_scf_is_recorded_not_fatal():
     assert odd.status == "failed" and "odd number of electrons" in odd.error
 
 
-def test_relabel_goes_on_after_a_failure(tmp_path):
+@pytest.mark.parametrize("workers", ["0", "2"])
+def test_relabel_goes_on_after_a_failure(tmp_path, workers):
+    """A failed frame is reported and skipped, in-process and on a 2-worker LocalCluster."""
     src = tmp_path / "in.xyz"
     src.write_text(
         "2\nProperties=species:S:1:pos:R:3 efield=\"0.0 0.0 0.001\"\nH 0 0 0\nH 0 0 0.74\n"
@@ -130,7 +132,8 @@ def test_relabel_goes_on_after_a_failure(tmp_path):
         "2\nProperties=species:S:1:pos:R:3\nH 0 0 0\nH 0 0 0.70\n"
     )
     out = tmp_path / "out.xyz"
-    assert main(["relabel", str(src), "-o", str(out), "--level", "tiny", "--quiet"]) == 1
+    assert main(["relabel", str(src), "-o", str(out), "--level", "tiny", "--quiet",
+                 "--workers", workers]) == 1
     frames = read_frames(out)
     assert len(frames) == 2 and all(len(f.centres) == 1 for f in frames)
     failed = (tmp_path / "out.xyz.failed.yaml").read_text()

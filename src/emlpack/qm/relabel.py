@@ -115,17 +115,23 @@ def relabel(
     boys_starts: int = 3,
     progress: bool = True,
     labeler: PySCFLabeler | None = None,
+    workers: int = 0,
+    scheduler: str | None = None,
 ) -> RelabelReport:
-    """Relabel ``in_path`` frame by frame and write ``out_path`` (temp file + rename)."""
+    """Relabel ``in_path`` frame by frame and write ``out_path`` (temp file + rename).
+
+    ``workers > 0`` runs the frames on a Dask ``LocalCluster``; ``scheduler`` on an existing
+    Dask cluster; otherwise in this process.
+    """
     from tqdm import tqdm
 
     frames = read_frames(in_path, index=index)
     lab = labeler or PySCFLabeler(parse_level(level), boys_starts=boys_starts)
     report = RelabelReport(n_frames=len(frames))
     out_frames: list[RefFrame] = []
-    for frame in tqdm(frames, desc="relabel", unit="frame", disable=not progress,
-                      file=sys.stderr):
-        res = lab(frame.numbers, frame.positions, frame.field)
+    results = _results_in_order(frames, lab, workers, scheduler)
+    for frame, res in tqdm(zip(frames, results, strict=False), total=len(frames),
+                           desc="relabel", unit="frame", disable=not progress, file=sys.stderr):
         if not res.ok:
             report.n_failed += 1
             report.failures.append({"source": frame.source, "reason": res.error})
@@ -143,3 +149,26 @@ def relabel(
     elif failed_path.exists():
         failed_path.unlink()
     return report
+
+
+def _label_frame(lab: PySCFLabeler, frame: RefFrame) -> LabelResult:
+    return lab(frame.numbers, frame.positions, frame.field)
+
+
+def _results_in_order(frames, lab, workers: int, scheduler: str | None):
+    """Label results in frame order, computed here or on Dask (yielded as they are needed)."""
+    if not workers and not scheduler:
+        for frame in frames:
+            yield _label_frame(lab, frame)
+        return
+    from emlpack.qm.labeling import _dask_client
+
+    client = _dask_client(scheduler, workers)
+    try:
+        if not scheduler:
+            lab.threads = max(1, (os.cpu_count() or 1) // workers)
+        futures = [client.submit(_label_frame, lab, f, pure=False) for f in frames]
+        for fut in futures:
+            yield fut.result()
+    finally:
+        client.close()
