@@ -1,0 +1,160 @@
+"""The trainer end to end on a tiny model: a run, exact resume after kill -9, data parallel
+with 2 processes giving the loss curve of 1 process with the same global batch, ensembles."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from emlpack.io import read_structures, write_structures
+from emlpack.nn.checkpoint import load_model, read_checkpoint
+from emlpack.train.config import load_config
+from emlpack.train.trainer import train, train_ensemble
+from tests.conftest import shared_path
+
+TINY = {
+    "model": {"n_features": 16, "n_filters": 8, "n_rbf": 8, "n_interactions": 1},
+    "training": {"batch_size": 8, "max_epochs": 3, "lr": 1e-2, "threads": 1,
+                 "decay_epochs": 2.0, "eval_batch_size": 16},
+    "output": {"progress": False},
+}
+
+
+@pytest.fixture(scope="module")
+def small_data(tmp_path_factory):
+    """24 configurations (4 per molecule) of the shared eQM7 subset."""
+    frames = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), index="::25")
+    path = tmp_path_factory.mktemp("data") / "small.xyz"
+    write_structures(path, frames)
+    return path
+
+
+def _config(tmp_path: Path, data: Path, name: str, **sections) -> Path:
+    cfg = {k: dict(v) for k, v in TINY.items()}
+    cfg["data"] = {"path": str(data), "hydrides": str(shared_path("data/hydrides")),
+                   "split": "configuration", "fractions": [0.75, 0.25, 0.0]}
+    cfg["output"] = {**cfg["output"], "dir": str(tmp_path / name)}
+    for key, value in sections.items():
+        cfg[key] = {**cfg.get(key, {}), **value}
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def _log(run: Path) -> list[dict]:
+    with open(run / "log.csv", newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _cli(*args: str, env_extra: dict | None = None) -> list[str]:
+    return [sys.executable, "-m", "emlpack.cli", *args]
+
+
+def _env() -> dict:
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[2]) + os.pathsep + env.get(
+        "PYTHONPATH", "")
+    return env
+
+
+def test_training_reduces_the_loss_and_writes_the_run(tmp_path, small_data):
+    cfg = load_config(_config(tmp_path, small_data, "run", augmentation={"enabled": True,
+                                                                        "probability": 0.5}),
+                      ["training.max_epochs=4"])
+    best = train(cfg)
+    run = best.parent
+    rows = _log(run)
+    assert [int(r["epoch"]) for r in rows] == [1, 2, 3, 4]
+    assert float(rows[-1]["val_loss"]) < float(rows[0]["val_loss"])
+    assert sum(int(r["n_augmented"]) for r in rows) > 0
+    # lr halves every decay_epochs (smoothly per step)
+    steps = int(rows[-1]["step"])
+    assert float(rows[-1]["lr"]) == pytest.approx(1e-2 * 0.5 ** (steps / (3 * 2.0)), rel=1e-6)
+    for name in ("config.yaml", "split.json", "best.pt", "last.pt"):
+        assert (run / name).exists()
+    saved = yaml.safe_load((run / "config.yaml").read_text())
+    assert saved["training"]["max_epochs"] == 4
+    model = load_model(best)  # weights_only loading of the model part
+    assert model.config.n_features == 16
+    meta = read_checkpoint(run / "last.pt")["metadata"]
+    assert meta["training"]["epoch"] == 4 and meta["reference"]["kind"] == "hydrides"
+
+
+def test_resume_after_kill_minus_9_is_exact(tmp_path, small_data):
+    cfg = _config(tmp_path, small_data, "ref", training={"max_epochs": 5})
+    subprocess.run(_cli("train", str(cfg)), check=True, env=_env(), capture_output=True)
+    reference = _log(tmp_path / "ref")
+
+    cfg2 = _config(tmp_path, small_data, "killed", training={"max_epochs": 5})
+    run = tmp_path / "killed"
+    proc = subprocess.Popen(_cli("train", str(cfg2)), env=_env(), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if (run / "log.csv").exists() and len(_log(run)) >= 2:
+            break
+        time.sleep(0.02)
+    assert proc.poll() is None, "the run finished before it could be killed"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done = len(_log(run))
+    assert 2 <= done < 5
+    out = subprocess.run(_cli("train", str(cfg2)), check=True, env=_env(), capture_output=True,
+                         text=True)
+    assert "resumed from" in out.stdout
+    resumed = _log(run)
+    assert [r["epoch"] for r in resumed] == [r["epoch"] for r in reference]
+    for a, b in zip(reference, resumed, strict=True):
+        for key in ("train_loss", "val_loss", "lr", "step"):
+            assert float(a[key]) == pytest.approx(float(b[key]), rel=1e-6), key
+    w_ref = read_checkpoint(tmp_path / "ref" / "last.pt")["state_dict"]
+    w_res = read_checkpoint(run / "last.pt")["state_dict"]
+    for key in w_ref:
+        torch.testing.assert_close(w_ref[key], w_res[key], rtol=1e-5, atol=1e-7)
+
+
+def test_ddp_two_processes_match_one_process(tmp_path, small_data):
+    common = {"training": {"dtype": "float64", "max_epochs": 2}}
+    one = _config(tmp_path, small_data, "one", **common)
+    two = _config(tmp_path, small_data, "two", **common)
+    subprocess.run(_cli("train", str(one)), check=True, env=_env(), capture_output=True)
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node",
+           "2", "-m", "emlpack.cli", "train", str(two)]
+    res = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    a, b = _log(tmp_path / "one"), _log(tmp_path / "two")
+    assert len(a) == len(b) == 2
+    for ra, rb in zip(a, b, strict=True):
+        for key in ("train_loss", "train_forces_mse", "val_loss", "val_forces_mae"):
+            assert float(ra[key]) == pytest.approx(float(rb[key]), rel=1e-7), key
+    w1 = read_checkpoint(tmp_path / "one" / "last.pt")["state_dict"]
+    w2 = read_checkpoint(tmp_path / "two" / "last.pt")["state_dict"]
+    for key in w1:
+        torch.testing.assert_close(w1[key], w2[key], rtol=1e-6, atol=1e-9)
+
+
+def test_ensemble_of_seeds_and_evaluation_table(tmp_path, small_data):
+    from emlpack.train.evaluate import evaluate_models
+
+    cfg = load_config(_config(tmp_path, small_data, "ens"), ["training.max_epochs=1"])
+    paths = train_ensemble(cfg, [0, 1])
+    assert [p.parent.name for p in paths] == ["seed0", "seed1"]
+    w0 = read_checkpoint(paths[0])["state_dict"]
+    w1 = read_checkpoint(paths[1])["state_dict"]
+    assert not torch.equal(w0["schnet.embedding.weight"], w1["schnet.embedding.weight"])
+    table, results = evaluate_models(paths, small_data, tmp_path / "eval", subset="val",
+                                     max_structures=3, progress=False)
+    assert "±" in table and "error rate" in table and "intrinsic variability" in table
+    assert (tmp_path / "eval" / "parity.png").stat().st_size > 1000
+    assert len(results["models"]) == 2
+    assert np.isfinite(results["models"][0]["static"]["forces"]["mae"])
