@@ -42,3 +42,35 @@ REFERENCE_GAMMA = 1.0 / (2.0 * REFERENCE_SIGMA)
 REFERENCE_GCUT_PER_BOHR = 0.25
 
 SQRT_PI = math.sqrt(math.pi)
+
+# ---------------------------------------------------------------- response and spectroscopy
+# SI constants (CODATA 2018, exact where defined) for report units; the model's own constants
+# above stay molmod's.
+#: elementary charge (C)
+ELEMENTARY_CHARGE_C = 1.602176634e-19
+#: atomic mass unit (kg)
+AMU_KG = 1.66053906660e-27
+#: speed of light (m/s)
+SPEED_OF_LIGHT_M_S = 299792458.0
+#: Avogadro constant (1/mol)
+AVOGADRO = 6.02214076e23
+#: vacuum permittivity (F/m)
+EPSILON0_SI = 8.8541878128e-12
+#: vacuum permittivity in e/(V·Å), consistent with the model's Coulomb constant:
+#: eps0 = 1/(4 pi k_e), k_e = COULOMB_EV_A (eV·Å/e² = V·Å/e)
+EPSILON0_E_PER_V_A = 1.0 / (4.0 * math.pi * COULOMB_EV_A)
+#: polarization/piezo: e/Å² -> C/m² (16.02...)
+E_PER_A2_IN_C_PER_M2 = ELEMENTARY_CHARGE_C / 1e-20
+#: piezoelectric strain constant: Å/V -> pm/V
+A_PER_V_IN_PM_PER_V = 100.0
+#: polarizability volume: Å³ -> bohr³ (alpha[Å³] = alpha[e·Å²/V] * COULOMB_EV_A)
+POLARIZABILITY_A3_IN_BOHR3 = ANGSTROM_IN_BOHR**3
+#: harmonic wavenumber: sqrt(eV/(Å² amu)) -> cm^-1 (521.47...)
+WAVENUMBER_CM1_PER_SQRT_EV_A2_AMU = (
+    math.sqrt(ELEMENTARY_CHARGE_C / (1e-20 * AMU_KG)) / (2.0 * math.pi * SPEED_OF_LIGHT_M_S * 100.0)
+)
+#: IR intensity N_A/(12 eps0 c²) |dmu/dQ|²: (e/sqrt(amu))² -> km/mol (974.86...)
+IR_KM_PER_MOL_PER_E2_AMU = (
+    AVOGADRO / (12.0 * EPSILON0_SI * SPEED_OF_LIGHT_M_S**2)
+    * ELEMENTARY_CHARGE_C**2 / AMU_KG / 1000.0
+)
