@@ -145,6 +145,17 @@ def test_kill_9_during_appends_keeps_a_consistent_store(tmp_path):
         assert len(st) == n + 1
 
 
+def test_one_writer_at_a_time(tmp_path):
+    path = tmp_path / "s.h5"
+    with DatasetStore(path, "a") as st:
+        st.append(_methane(0))
+        with pytest.raises(StoreError, match="another process is writing"):
+            DatasetStore(path, "a")
+        assert len(DatasetStore(path)) == 1  # readers are welcome
+    with DatasetStore(path, "a") as st:  # the lock is released on close
+        st.append(_methane(1))
+
+
 def test_store_survives_pickle_and_rejects_other_files(tmp_path):
     path = tmp_path / "s.h5"
     DatasetStore(path, "a").append(_methane(0))

@@ -75,6 +75,7 @@ class DatasetStore:
         self._file = None
         self._pid = None
         self._key_cache: set[str] | None = None
+        self._lock_fd: int | None = None
         if mode == "r" and not self.path.exists():
             raise StoreError(f"{self.path}: no such dataset store")
         self._open()
@@ -90,10 +91,11 @@ class DatasetStore:
                 _create_layout(f)
             os.replace(tmp, self.path)
         try:
-            if self.mode == "r":  # readers may look at a store that is being written
-                self._file = h5py.File(self.path, "r", locking=False)
-            else:
-                self._file = h5py.File(self.path, "r+")
+            if self.mode == "a":
+                self._lock_writer()
+            # HDF5's own locking would stop readers from watching a store being written (and
+            # mixes badly within one process); one writer at a time is ensured by _lock_writer
+            self._file = h5py.File(self.path, "r" if self.mode == "r" else "r+", locking=False)
         except OSError as exc:
             raise StoreError(f"{self.path}: cannot open as an HDF5 dataset store: {exc}") from None
         self._pid = os.getpid()
@@ -104,6 +106,22 @@ class DatasetStore:
             raise StoreError(f"{self.path}: store format version {version} is not supported")
         if self.mode == "a":
             self._truncate_uncommitted()
+
+    def _lock_writer(self) -> None:
+        """Hold an exclusive lock on ``STORE.lock`` while appending (one writer at a time)."""
+        import fcntl
+
+        if getattr(self, "_lock_fd", None) is not None:
+            return
+        fd = os.open(str(self.path) + ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise StoreError(
+                f"{self.path}: another process is writing to this store"
+            ) from None
+        self._lock_fd = fd
 
     @property
     def file(self):
@@ -117,6 +135,9 @@ class DatasetStore:
         if self._file is not None and self._pid == os.getpid():
             self._file.close()
         self._file = None
+        if getattr(self, "_lock_fd", None) is not None and self._pid == os.getpid():
+            os.close(self._lock_fd)
+        self._lock_fd = None
 
     def __enter__(self) -> DatasetStore:
         return self

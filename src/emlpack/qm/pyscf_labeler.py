@@ -61,6 +61,7 @@ class LabelResult:
         boys_spreads: final spread (bohr^2) of each localization start.
         boys_note: a note when the starts disagreed (empty otherwise).
         scf_cycles: SCF iterations used.
+        dipole: dipole moment (e·Å) from the SCF density and the nuclei, origin 0.
     """
 
     status: str
@@ -79,6 +80,7 @@ class LabelResult:
     boys_spreads: list[float] = field(default_factory=list)
     boys_note: str = ""
     scf_cycles: int = 0
+    dipole: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:
@@ -239,6 +241,10 @@ class PySCFLabeler:
             mf = mf2
         res.scf_cycles = cycles
         res.energy = float(energy) * HARTREE
+        with mol.with_common_origin((0.0, 0.0, 0.0)):
+            dip_ints = mol.intor_symmetric("int1e_r", comp=3)
+        electronic = -np.einsum("xij,ji->x", dip_ints, mf.make_rdm1())
+        res.dipole = (electronic + mol.atom_charges() @ mol.atom_coords()) * BOHR
         if forces:
             res.forces = -self._gradient(mol, mf, field_au) * (HARTREE * ANGSTROM_IN_BOHR)
         if localize:
