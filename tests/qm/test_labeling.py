@@ -208,3 +208,24 @@ def test_read_molecules_from_csv_smiles_and_xyz(tmp_path):
     (mol,), _ = read_molecules(xyz)
     assert mol.name == "ethanol-0000" and len(mol.bonds) == 8
     assert len(mol.rotatable_bonds()) == 2
+
+
+@pytest.mark.slow
+def test_hydride_references_are_stored_with_the_dataset(tmp_path):
+    """hydrides: true labels optimised H2, CH4, NH3, H2O at the labeling level."""
+    smi = _smiles_file(tmp_path, ("C",))
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text("samples: []\nhydrides: true\n")
+    store = tmp_path / "s.h5"
+    assert main(["label", str(smi), "-o", str(store), "--recipe", str(recipe), "--level",
+                 "tiny", "--workers", "0", "--quiet"]) == 0
+    with DatasetStore(store) as st:
+        refs = st.references()
+        assert set(refs) == {"H2", "CH4", "NH3", "H2O"}
+        assert all(r["level"] == "pbe0/sto-3g" for r in refs.values())
+        by_id = {s.info["molecule_id"]: s for s in st}
+        assert {k: s.info["kind"] for k, s in by_id.items()} == dict.fromkeys(refs, "hydride")
+        for name, s in by_id.items():
+            assert s.energy == refs[name]["energy"]
+            assert np.abs(s.forces).max() < 0.05  # optimised at the same level
+        assert by_id["H2O"].n_pairs == 4 and by_id["H2"].n_pairs == 1

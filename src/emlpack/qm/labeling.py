@@ -141,7 +141,7 @@ def pyscf_hessian(labeler: PySCFLabeler, numbers, positions) -> np.ndarray:
 
 
 def prepare_task(source, level: str, optimize: bool, fmax: float, seed: int,
-                 threads: int | None = None) -> Molecule:
+                 threads: int | None = None, hessian: bool = True) -> Molecule:
     """Build (SMILES), optimise and compute the Hessian of one molecule (runs on a worker)."""
     mol = source if isinstance(source, Molecule) else molecule_from_smiles(
         source[1], name=source[0], seed=seed)
@@ -158,7 +158,8 @@ def prepare_task(source, level: str, optimize: bool, fmax: float, seed: int,
             raise SamplingError(f"{mol.name}: geometry optimisation did not converge")
         pos = atoms.positions.copy()
     mol.positions = pos
-    mol.hessian = pyscf_hessian(labeler, mol.numbers, pos)
+    n = 3 * len(mol.numbers)
+    mol.hessian = pyscf_hessian(labeler, mol.numbers, pos) if hessian else np.zeros((n, n))
     return mol
 
 
@@ -351,13 +352,13 @@ def run_labeling(
     try:
         ac = _Completion(use_dask)
 
-        def submit_prepare(src, name):
-            cached = _load_prepared(prep_dir, name, prep_level)
+        def submit_prepare(src, name, hessian=True, level_=prep_level):
+            cached = _load_prepared(prep_dir, name, level_)
             if cached is not None:
                 fut = client.submit(_identity, cached, pure=False)
             else:
-                fut = client.submit(prepare_task, src, prep_level, bool(prep.get("optimize",
-                                    True)), float(prep.get("fmax", 0.01)), seed, threads,
+                fut = client.submit(prepare_task, src, level_, bool(prep.get("optimize", True)),
+                                    float(prep.get("fmax", 0.01)), seed, threads, hessian,
                                     pure=False)
             ac.add(fut, ("prep", name))
 
@@ -369,7 +370,8 @@ def run_labeling(
             for name, (src, _) in todo.items():
                 submit_prepare(src, name)
         for h, (_key, smi) in hydride_keys.items():
-            submit_prepare((f"hydride-{h}", smi), f"hydride-{h}")
+            # references: optimised at the labeling level itself, no Hessian needed
+            submit_prepare((f"hydride-{h}", smi), f"hydride-{h}", hessian=False, level_=level)
         waiting_probes = len(recipe.get("dimer", {}).get("probes", PROBES)) if need_probes else 0
 
         for fut in ac:
@@ -392,7 +394,7 @@ def run_labeling(
                     summary.failures.append(f"{name}: {reason}")
                     bar.update(len(keys))
                     continue
-                _save_prepared(prep_dir, mol, prep_level)
+                _save_prepared(prep_dir, mol, level if name.startswith("hydride-") else prep_level)
                 if name.startswith("probe-"):
                     probes[name.removeprefix("probe-")] = mol
                     mol.name = name.removeprefix("probe-")
