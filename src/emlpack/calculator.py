@@ -114,10 +114,9 @@ class EMLPCalculator(Calculator):
             return given
         if self.initial_pairs is not None:
             return self.initial_pairs
-        raise CalculationFailed(
-            f"no electron pairs for {atoms.get_chemical_formula()}: set"
-            f" atoms.info['{PAIRS_KEY}'] (Å) or pass pairs= to EMLPCalculator"
-        )
+        from emlpack.guess import guess_pairs  # no pairs given: Boys (molecule) / Lewis guess
+
+        return guess_pairs(atoms)
 
     # ------------------------------------------------------------------ calculation
     def calculate(

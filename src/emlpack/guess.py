@@ -1,7 +1,7 @@
 """Starting electron pairs for a bare structure (cores only).
 
 * ``method="boys"`` (molecules; the default for them when PySCF is installed): a quick
-  restricted Kohn-Sham calculation at a small basis (``level``, default PBE0/STO-3G) and
+  Hartree-Fock calculation at a small basis (``level``, default HF/STO-3G, ~1 s for 10 atoms) and
   Foster-Boys localization via :class:`emlpack.qm.pyscf_labeler.PySCFLabeler`; the valence
   centres are returned.
 * ``method="lewis"`` (crystals, or without PySCF): a Lewis structure. Bonds from covalent radii
@@ -38,7 +38,7 @@ LONE_PAIR_DISTANCE = {7: 0.38, 8: 0.32, 9: 0.28, 15: 0.6, 16: 0.55, 17: 0.5}
 MULTIPLE_BOND_OFFSET = 0.35
 
 
-def guess_pairs(atoms: Atoms, method: str = "auto", level: str = "pbe0/sto-3g/nodf",
+def guess_pairs(atoms: Atoms, method: str = "auto", level: str = "hf/sto-3g/nodf",
                 charge: float | None = None) -> np.ndarray:
     """Starting electron-pair positions (Å), shape (n_pairs, 3), for the cores in ``atoms``.
 
@@ -70,7 +70,7 @@ def _have_pyscf() -> bool:
     return True
 
 
-def boys_pairs(numbers, positions, charge: float = 0.0, level: str = "pbe0/sto-3g/nodf"):
+def boys_pairs(numbers, positions, charge: float = 0.0, level: str = "hf/sto-3g/nodf"):
     """Valence Foster-Boys centres (Å) of a quick PySCF calculation at ``level``."""
     from emlpack.qm.pyscf_labeler import LabelingError, PySCFLabeler
 

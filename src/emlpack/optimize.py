@@ -14,8 +14,9 @@ eigenvalues replaced by ``max(|lambda|, 1e-2 eV/Å²)``, steps capped at ``max_s
 Armijo backtracking line search: quadratic convergence, for small systems and tight
 tolerances (response properties need ~1e-6 eV/Å). ``method="lbfgs"`` uses scipy's L-BFGS-B
 with gradients only (large models, where one Hessian costs hundreds of gradients).
-Converged when every particle force is below ``fmax`` (eV/Å) and, with ``cell``, every stress
-component below ``smax`` (eV/Å³).
+Converged when every particle force (rigid-body components removed: a molecule in a field
+feels a torque, which the optimiser does not follow) is below ``fmax`` (eV/Å) and, with
+``cell``, every stress component below ``smax`` (eV/Å³).
 """
 
 from __future__ import annotations
@@ -134,7 +135,11 @@ class _Problem:
         return out
 
     def measures(self, s: Structure, g: np.ndarray) -> tuple[float, float]:
+        """Largest particle force and stress, rigid-body components (the net force and torque
+        of a field on a molecule) removed."""
         n = s.n_cores + s.n_pairs
+        q = self.basis(s)
+        g = q @ (q.T @ g)
         fmax = float(np.linalg.norm(g[: 3 * n].reshape(n, 3), axis=1).max())
         smax = float(np.abs(g[3 * n :]).max() / s.volume) if self.cell else 0.0
         return fmax, smax
