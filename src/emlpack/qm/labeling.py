@@ -424,7 +424,17 @@ def run_labeling(
                     ac.add(client.submit(label_task, conf, level, boys, seed, threads,
                                          pure=False), ("label", conf.key))
             else:
-                conf, res = fut.result()
+                try:
+                    conf, res = fut.result()
+                except Exception as exc:  # noqa: BLE001 - e.g. a worker died: record it
+                    key = name if "/" in name else f"hydride/{name.split('-', 1)[1]}/0000"
+                    reason = f"task failed: {type(exc).__name__}: {exc}"
+                    store.add_failures([{"key": key, "molecule_id": key.split("/")[0],
+                                         "kind": key.split("/")[1], "reason": reason}])
+                    summary.n_failed_new += 1
+                    summary.failures.append(f"{key}: {reason}")
+                    bar.update(1)
+                    continue
                 if res.ok:
                     s = res.to_structure(source=conf.key, info={
                         "key": conf.key, "molecule_id": conf.molecule_id, "kind": conf.kind,
