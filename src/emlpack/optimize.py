@@ -52,6 +52,8 @@ class OptimizeResult:
     max_stress: float
     min_curvature: float
     reason: str = ""
+    #: the last Hessian used, in the variables (du, S) of the final structure's neighbourhood
+    hessian: np.ndarray | None = None
 
     def lattice(self) -> dict:
         """Lattice lengths a, b, c (Å), angles alpha, beta, gamma (degrees), volume (Å³)."""
@@ -154,6 +156,8 @@ def optimize(
     max_iterations: int = 100,
     max_step: float = 0.2,
     method: str = "newton",
+    hessian: np.ndarray | None = None,
+    hessian_every: int = 1,
     log=None,
 ) -> OptimizeResult:
     """Minimise the energy over all particle positions (and the cell for ``cell=True``).
@@ -163,6 +167,11 @@ def optimize(
         smax: largest stress component at convergence (eV/Å³), with ``cell``.
         max_step: largest particle displacement per step (Å); strain steps <= max_step/5.
         method: ``"newton"`` (exact Hessians) or ``"lbfgs"`` (gradients only).
+        hessian: Hessian in the optimiser's variables (:attr:`OptimizeResult.hessian`, e.g.
+            of a nearby structure) to start from instead of computing one.
+        hessian_every: recompute the exact Hessian every this many iterations (0: never;
+            with ``hessian`` given this is the chord method: linear convergence, one gradient
+            per step, ideal for the small perturbations of finite differences).
         log: callable receiving one line per iteration (e.g. ``print``).
     """
     if cell and not structure.pbc:
@@ -183,8 +192,12 @@ def optimize(
     reason = f"no convergence in {max_iterations} iterations"
     converged = False
     it = 0
+    h = hessian
     for it in range(1, max_iterations + 1):
-        g, h = prob.hessian(s)
+        if h is None or (hessian_every and (it - 1) % hessian_every == 0):
+            g, h = prob.hessian(s)
+        else:
+            g = prob.gradient(s)
         q = prob.basis(s)
         evals, evecs = np.linalg.eigh(q.T @ h @ q)
         min_curv = float(evals[0])
@@ -214,7 +227,7 @@ def optimize(
         s, energy = trial, e_trial
     g = prob.gradient(s)
     f_end, s_end = prob.measures(s, g)
-    return OptimizeResult(s, energy, converged, it, f_end, s_end, min_curv, reason)
+    return OptimizeResult(s, energy, converged, it, f_end, s_end, min_curv, reason, h)
 
 
 def _longest(s: Structure, step: np.ndarray, cell: bool) -> float:
