@@ -182,7 +182,92 @@ def _add_evaluate(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _response_common(p, relax_default: str) -> None:
+    p.add_argument("model", help="emlpack model file (.pt)")
+    p.add_argument("structure", help="extxyz with Es pairs, or any ASE-readable file (pairs"
+                   " are then guessed)")
+    p.add_argument("--index", default="0", help="frame in the file (default 0)")
+    p.add_argument("--relax", default=relax_default,
+                   choices=["none", "pairs", "positions", "cell"],
+                   help=f"relax before computing (default {relax_default})")
+    p.add_argument("--method", default="newton", choices=["newton", "lbfgs"],
+                   help="optimiser for positions/cell")
+    p.add_argument("--fmax", type=float, default=1e-6, help="force tolerance (eV/Å)")
+    p.add_argument("--guess", default="auto", choices=["auto", "boys", "lewis"],
+                   help="pair guess when the file has none")
+    p.add_argument("-o", "--output", help="JSON output file")
+
+
+def _load_for_response(args):
+    from emlpack.nn.checkpoint import load_model
+    from emlpack.response_tasks import read_input, relax
+
+    model = load_model(args.model)
+    s = read_input(args.structure, args.index, args.guess)
+    return model, relax(model, s, args.relax, args.method, args.fmax)
+
+
+def _add_ir(sub) -> None:
+    p = sub.add_parser("ir", help="harmonic IR spectrum of a molecule (JSON + PNG)")
+    _response_common(p, "positions")
+    p.add_argument("--png", help="PNG plot of the spectrum")
+    p.add_argument("--fwhm", type=float, default=10.0, help="Lorentzian FWHM (cm^-1)")
+    p.add_argument("--reference", help="reference spectrum: text columns cm^-1, km/mol")
+
+    def run(args):
+        from emlpack.response_tasks import run_ir
+
+        model, s = _load_for_response(args)
+        run_ir(model, s, args.output, args.png, args.fwhm, args.reference)
+
+    p.set_defaults(func=run)
+
+
+def _add_polarizability(sub) -> None:
+    p = sub.add_parser("polarizability", help="dipole and polarizabilities of a molecule")
+    _response_common(p, "pairs")
+
+    def run(args):
+        from emlpack.response_tasks import run_polarizability
+
+        model, s = _load_for_response(args)
+        run_polarizability(model, s, args.output)
+
+    p.set_defaults(func=run)
+
+
+def _add_response(sub) -> None:
+    p = sub.add_parser("response", help="stiffness, dielectric and piezoelectric tensors of"
+                       " a crystal")
+    _response_common(p, "positions")
+
+    def run(args):
+        from emlpack.response_tasks import run_response
+
+        model, s = _load_for_response(args)
+        run_response(model, s, args.output)
+
+    p.set_defaults(func=run)
+
+
+def _add_optimize(sub) -> None:
+    p = sub.add_parser("optimize", help="optimise pairs, positions (and the cell) of a"
+                       " structure; writes extxyz")
+    _response_common(p, "positions")
+
+    def run(args):
+        from emlpack.io import write_structures
+
+        _, s = _load_for_response(args)
+        out = args.output or "optimized.xyz"
+        write_structures(out, [s])
+        print(f"wrote {out}")
+
+    p.set_defaults(func=run)
+
+
 COMMANDS = [_add_train, _add_evaluate, _add_demo, _add_relabel, _add_convert_reference, _add_label]
+COMMANDS += [_add_ir, _add_polarizability, _add_response, _add_optimize]
 
 
 def main(argv: list[str] | None = None) -> int:

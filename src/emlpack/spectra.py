@@ -59,7 +59,7 @@ class IRSpectrum:
     ) -> tuple[np.ndarray, np.ndarray]:
         """(wavenumbers cm^-1, absorbance km/mol/cm^-1) with Lorentzian lines of ``fwhm``."""
         if grid is None:
-            top = max(4000.0, float(self.frequencies.max(initial=0.0)) + 200.0)
+            top = min(max(4000.0, float(self.frequencies.max(initial=0.0)) + 200.0), 10000.0)
             grid = np.arange(0.0, top, 1.0)
         return grid, lorentzian(grid, self.frequencies, self.intensities, fwhm)
 
