@@ -31,7 +31,9 @@ lint: install
 # replace torch 2.13 by an old CUDA build, so it is installed without its dependencies.
 $(VENV)/.bench: $(VENV)/.installed
 	$(PIP) install -q --no-deps schnetpack==2.1.1
-	$(PIP) install -q hydra-core matscipy pytorch-lightning torchmetrics torch-ema rich dirsync fasteners
+	$(PIP) install -q hydra-core hydra-colorlog matscipy pytorch-lightning torchmetrics torch-ema \
+		rich dirsync fasteners
+	$(PY) -c 'import torch; v = torch.__version__; assert v.startswith("2.13.0"), v'
 	touch $@
 
 bench-deps: $(VENV)/.bench
