@@ -84,7 +84,7 @@ def dynamic_errors(model, reference, structures, batch_size: int = 16,
 
     c = model.config
     e_err, f_err, d_err, d_true, e_true, f_true = [], [], [], [], [], []
-    failures = []
+    failures, records = [], []
     chunks = range(0, len(structures), batch_size)
     for k in tqdm(chunks, desc="relaxing pairs", disable=not progress, leave=False):
         chunk = structures[k:k + batch_size]
@@ -96,6 +96,9 @@ def dynamic_errors(model, reference, structures, batch_size: int = 16,
                                   if shift > max_pair_shift else "")
             if reason:
                 failures.append({"structure": s.source, "reason": reason})
+                records.append({"structure": s.source, "max_pair_shift": float(shift),
+                                "dft_dipole_D": float(np.linalg.norm(s.dipole()) * E_A_IN_DEBYE),
+                                "emlp_dipole_D": float("nan"), "failure": reason})
                 continue
             relaxed.append(s.copy(pairs=r.pairs))
             kept.append(s)
@@ -114,6 +117,10 @@ def dynamic_errors(model, reference, structures, batch_size: int = 16,
             mu_dft = np.linalg.norm(s.dipole()) * E_A_IN_DEBYE
             d_err.append(mu_model - mu_dft)
             d_true.append(mu_dft)
+            shift = np.linalg.norm(s_rel.pairs - s.pairs, axis=1).max() if s.n_pairs else 0.0
+            records.append({"structure": s.source, "max_pair_shift": float(shift),
+                            "dft_dipole_D": float(mu_dft), "emlp_dipole_D": float(mu_model),
+                            "failure": ""})
     return {
         "energy": _stats(_cat(e_err)), "forces": _stats(_cat(f_err)),
         "dipole": _stats(np.array(d_err)),
@@ -121,6 +128,7 @@ def dynamic_errors(model, reference, structures, batch_size: int = 16,
                       "dipole": _intrinsic(np.array(d_true))},
         "n_structures": len(structures), "n_failed": len(failures),
         "error_rate": len(failures) / max(len(structures), 1), "failures": failures,
+        "structures": records,
     }
 
 

@@ -177,6 +177,12 @@ class Trainer:
 
     def resume(self, path: Path) -> None:
         payload = read_checkpoint(path)
+        saved = payload["metadata"].get("config", {})
+        for section in ("model", "data"):
+            if saved.get(section) != self.cfg[section]:
+                raise ValueError(
+                    f"{path}: the run was started with a different '{section}' config; resume"
+                    " with the same config, or start afresh (--restart / another output.dir)")
         state = payload["metadata"]["training"]
         self.model.load_state_dict(payload["state_dict"])
         self.optimizer.load_state_dict(state["optimizer"])
