@@ -154,7 +154,8 @@ def test_label_on_a_two_worker_local_cluster(tmp_path):
 def test_label_refuses_a_different_recipe_and_reports_bad_input(tmp_path, capsys):
     smi = _smiles_file(tmp_path, ("C",))
     store = tmp_path / "s.h5"
-    DatasetStore(store, "a").set_metadata(recipe="something else")
+    with DatasetStore(store, "a") as st:
+        st.set_metadata(recipe="something else")
     assert main(["label", str(smi), "-o", str(store), "--workers", "0", *QUICK]) == 2
     assert "different recipe" in capsys.readouterr().err
     assert main(["label", str(tmp_path / "none.csv"), "-o", str(store), *QUICK]) == 2
