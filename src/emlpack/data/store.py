@@ -139,6 +139,12 @@ class DatasetStore:
             os.close(self._lock_fd)
         self._lock_fd = None
 
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 - interpreter shutdown
+            pass
+
     def __enter__(self) -> DatasetStore:
         return self
 
