@@ -253,3 +253,29 @@ def test_convert_reference_checkpoint(tmp_path, size, molecules, periodic):
         assert_close(r["energy"], data[p + "energy"], what=p + "energy")
         assert_close(r["forces"], data[p + "core_forces"], what=p + "forces")
         assert_close(r["pair_forces"], data[p + "pair_forces"], what=p + "pair forces")
+
+
+@pytest.mark.parametrize("size", ["small", "paper"])
+def test_frozen_inference_path(size, molecules, periodic):
+    """With frozen parameters (relaxation, MD, response) SchNet runs a folded evaluation
+    (nn/schnet.py): it must reproduce the reference just like the trainable path."""
+    model = load_model(size)
+    model.requires_grad_(False)
+    if size == "small":
+        cases = [(molecules, f"c{k:02d}_") for k in range(12)]
+        cases += [(periodic, f"p{k}_") for k in range(4)]
+    else:
+        data = np.load(shared_path(FIX + "paper_outputs.npz"))
+        cases = [(data, f"P{k:02d}_") for k in (0, 4, 8, 10)]
+    for data, p in cases:
+        r = model.evaluate(fixture_structure(data, p))
+        assert_close(r["energy"], data[p + "energy"], what=p + "energy")
+        assert_close(r["atomic_energies"], data[p + "atomic_energies"], what=p + "atomic")
+        assert_close(r["forces"], data[p + "core_forces"], what=p + "forces")
+        assert_close(r["pair_forces"], data[p + "pair_forces"], what=p + "pair forces")
+    if size == "small":
+        _, h = extended_hessian(model, fixture_structure(periodic, "p0_"))
+        h = h.numpy()
+        h[-3:] *= FIELD_AU_IN_V_PER_A
+        h[:, -3:] *= FIELD_AU_IN_V_PER_A
+        assert_close(h, periodic["p0_hessian_extended"], what="frozen hessian")

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from emlpack.io.cores import minimum_image_distances
 from emlpack.nn.graph import Graph
 from emlpack.nn.potential import EMLP
 from emlpack.nn.scatter import segment_sum
@@ -414,31 +415,18 @@ def _results(structures, prob, x, energy, grad, converged, iters, n_eval, n_hess
     return out
 
 
-def _minimum_image(d: np.ndarray, s: Structure) -> np.ndarray:
-    """Shortest periodic images of difference vectors ``d`` (..., 3) in Å."""
-    if not s.pbc:
-        return d
-    frac = d @ np.linalg.inv(s.cell)
-    frac -= np.round(frac)
-    d = frac @ s.cell
-    shifts = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
-    cand = d[..., None, :] + shifts @ s.cell
-    best = np.argmin(np.linalg.norm(cand, axis=-1), axis=-1)
-    return np.take_along_axis(cand, best[..., None, None], axis=-2)[..., 0, :]
-
-
 def _failure_reason(
     s: Structure, pairs: np.ndarray, converged: bool, min_curv: float, opts: RelaxOptions
 ) -> str:
     reasons = []
     if len(pairs) > 1:
-        d = np.linalg.norm(_minimum_image(pairs[:, None] - pairs[None], s), axis=-1)
+        d = minimum_image_distances(pairs, pairs, s.cell, s.pbc)
         d[np.diag_indices(len(pairs))] = np.inf
         if d.min() < opts.min_pair_distance:
             i, j = np.unravel_index(np.argmin(d), d.shape)
             reasons.append(f"pairs {i} and {j} are {d.min():.3g} Å apart (merged)")
     if len(pairs):
-        dc = np.linalg.norm(_minimum_image(pairs[:, None] - s.positions[None], s), axis=-1)
+        dc = minimum_image_distances(pairs, s.positions, s.cell, s.pbc)
         far = np.nonzero(dc.min(axis=1) > opts.max_core_distance)[0]
         if len(far):
             reasons.append(
