@@ -8,14 +8,14 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 
 from emlpack.guess import guess_pairs, lewis_pairs
-from emlpack.io import read_structures, structure_to_atoms
-from emlpack.relax import _minimum_image, relax_pairs
+from emlpack.io import minimum_image_distances, read_structures, structure_to_atoms
+from emlpack.relax import relax_pairs
 from tests.conftest import shared_path
 from tests.nn.helpers import reference_model
 
 
 def _matched_distance(a: np.ndarray, b: np.ndarray, s) -> float:
-    d = np.linalg.norm(_minimum_image(a[:, None] - b[None], s), axis=-1)
+    d = minimum_image_distances(a, b, s.cell, s.pbc)
     r, c = linear_sum_assignment(d)
     return float(d[r, c].max())
 
