@@ -26,7 +26,7 @@ MOLECULES = ("H2O", "NH3", "CH4")
 HYDRIDE_NAMES = ("H2", "CH4", "NH3", "H2O")
 DEMO_LEVEL = "quick"
 N_PER_MOLECULE = 12
-TRAIN_MINUTES = 4.0
+TRAIN_MINUTES = 5.0
 
 
 def _label_one(task: tuple) -> tuple:
@@ -96,7 +96,7 @@ def demo_config(out: Path, minutes: float) -> dict:
         "model.n_interactions=2", "model.message_norm=10.0",
         "augmentation.enabled=true", "augmentation.probability=0.25",
         "training.batch_size=8", "training.lr=3.0e-3",
-        "training.decay_epochs=100", "training.max_epochs=100000",
+        "training.decay_epochs=300", "training.max_epochs=100000",
         f"training.max_time_minutes={minutes}", "training.threads=2",
         f"output.dir={out / 'run'}",
     ])
