@@ -74,3 +74,11 @@ IR_KM_PER_MOL_PER_E2_AMU = (
     AVOGADRO / (12.0 * EPSILON0_SI * SPEED_OF_LIGHT_M_S**2)
     * ELEMENTARY_CHARGE_C**2 / AMU_KG / 1000.0
 )
+#: Planck constant (J·s, exact)
+PLANCK_J_S = 6.62607015e-34
+#: speed of light in cm/fs (wavenumber cm^-1 = frequency 1/fs / this)
+SPEED_OF_LIGHT_CM_PER_FS = SPEED_OF_LIGHT_M_S * 100.0 * 1e-15
+#: h c in eV·cm (photon energy of 1 cm^-1: 1.2398e-4 eV)
+PLANCK_C_EV_CM = PLANCK_J_S * SPEED_OF_LIGHT_M_S * 100.0 / ELEMENTARY_CHARGE_C
+#: 1 eV in amu·Å²/fs² (kinetic energies from velocities in Å/fs: 0.0096485)
+EV_IN_AMU_A2_PER_FS2 = ELEMENTARY_CHARGE_C / (AMU_KG * 1e-20 / 1e-30)
