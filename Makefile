@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 
-.PHONY: install demo test test-slow lint bench-deps bench clean
+.PHONY: install install-cp2k demo test test-slow lint bench-deps bench clean
 
 $(VENV)/.installed: pyproject.toml Makefile
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -15,10 +15,18 @@ $(VENV)/.installed: pyproject.toml Makefile
 
 install: $(VENV)/.installed
 
+# CP2K (periodic labeler, emlpack.qm.cp2k_labeler): Debian/Ubuntu packages, only when missing.
+install-cp2k:
+	@command -v cp2k.psmp >/dev/null && command -v mpirun >/dev/null \
+		&& test -f /usr/share/cp2k/BASIS_MOLOPT || { \
+		SUDO=$$(test "$$(id -u)" -eq 0 || echo sudo); \
+		$$SUDO apt-get update -q && \
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -q cp2k cp2k-data openmpi-bin; }
+
 demo: install
 	$(VENV)/bin/emlp demo --output demo_output
 
-test: install
+test: install install-cp2k
 	$(PY) -m pytest -q
 
 test-slow: install
