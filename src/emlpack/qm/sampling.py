@@ -352,6 +352,7 @@ def dimer_sample(positions: np.ndarray, probe_positions: np.ndarray, rng: np.ran
 def cell_normal_mode_sample(numbers, positions: np.ndarray, cell: np.ndarray,
                             hessian: np.ndarray | Callable[[np.ndarray, np.ndarray], np.ndarray],
                             temperature: float, rng: np.random.Generator,
+                            min_eigenvalue: float | None = None,
                             ) -> tuple[np.ndarray, np.ndarray]:
     """Cell-extended normal-mode sample of a crystal (paper, beta-glycine).
 
@@ -360,6 +361,8 @@ def cell_normal_mode_sample(numbers, positions: np.ndarray, cell: np.ndarray,
     that matrix. The 3 translations and 3 rigid rotations (of positions and cell together) are
     projected out; the remaining 3n+3 internal coordinates ``x`` are drawn from
     ``N(0, k_B T H_int^-1)`` and mapped back. Returns (positions (Å), cell (Å)).
+    ``min_eigenvalue`` (eV/Å^2): internal eigenvalues below it are raised to it instead of
+    raising (e.g. a model Hessian evaluated away from the model's own minimum).
     """
     pos = np.asarray(positions, dtype=float)
     cell = np.asarray(cell, dtype=float)
@@ -379,6 +382,8 @@ def cell_normal_mode_sample(numbers, positions: np.ndarray, cell: np.ndarray,
     full = np.linalg.svd(np.eye(3 * n + 9) - z @ z.T)[0][:, : 3 * n + 3]  # internal basis
     h_int = full.T @ h @ full
     w, v = np.linalg.eigh(0.5 * (h_int + h_int.T))
+    if min_eigenvalue is not None:
+        w = np.maximum(w, min_eigenvalue)
     if np.any(w <= 0):
         raise SamplingError(f"internal extended Hessian is not positive definite ({w.min():.3g})")
     kt = BOLTZMANN_EV_K * temperature

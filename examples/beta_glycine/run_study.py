@@ -1,0 +1,567 @@
+"""The beta-glycine study (issue 7): DFT data -> eMLP -> the paper's table, DFT vs eMLP.
+
+Stages (each resumable; labels are committed one record at a time to an HDF5 store, so a
+killed run loses at most the calculation in flight)::
+
+    label      DFT reference-tensor calculations first (19: unperturbed + 6 fields + 12
+               strains), then the training configurations of every round whose samples can be
+               generated (round 0: random displacements; round r>0 needs `sample`), in
+               interleaved field/stress order, until --until HH:MM (UTC) or the end
+    reference  finite-difference DFT tensors from the 19 calculations -> WORKDIR/dft.json
+    train      eMLP training (Ewald, stress in the loss, constant reference) on the store
+    sample     next round's samples from the trained model's BO cell Hessian (600 K)
+    emlp       BO cell optimisation with the model, then lattice and tensors (response.py)
+    table      results.json + results.md (DFT vs eMLP vs deviation, paper's numbers alongside)
+    all        label, reference, train, emlp, table
+
+Usage (from the project root)::
+
+    python examples/beta_glycine/run_study.py label --until 05:55   # CP2K, in the background
+    python examples/beta_glycine/run_study.py reference train emlp table
+    python examples/beta_glycine/run_study.py all --config my.yaml workdir=/tmp/x
+
+``key=value`` arguments override the YAML config (dots for nesting, values parsed as YAML).
+The labeler is CP2K (:class:`emlpack.qm.cp2k_labeler.CP2KLabeler`, settings under ``cp2k:``);
+:func:`run` accepts any labeler obeying the protocol (tests use an eMLP).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import datetime as dt
+import json
+import os
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from emlpack.crystal_reference import (
+    FDSettings,
+    ReferenceError,
+    ReferenceTensors,
+    reference_tasks,
+    reference_tensors,
+)
+from emlpack.data.store import DatasetStore
+from emlpack.io.extxyz import read_structures
+from emlpack.qm.crystal_sampling import LabelTask, crystal_tasks
+from emlpack.structure import Structure
+from emlpack.units import (
+    A_PER_V_IN_PM_PER_V,
+    E_PER_A2_IN_C_PER_M2,
+    EV_PER_A3_IN_GPA,
+    FIELD_AU_IN_V_PER_A,
+)
+
+HERE = Path(__file__).resolve().parent
+STAGES = ("label", "reference", "train", "sample", "emlp", "table")
+
+#: the paper's numbers (emlp-paper.tex, tables tab:beta_glycine_lattice and
+#: tab:beta_glycine_response_properties): PBE-D3(BJ), Quantum ESPRESSO, 3x3x3 k-points, and the
+#: paper's eMLP; stiffness, e and d are the paper's (relaxed-ion) values
+PAPER = {
+    "pbe": {"a": 5.08, "b": 6.24, "c": 5.40, "beta": 112.6, "volume": 158.05,
+            "eps11": 2.65, "eps22": 2.19, "eps33": 2.52,
+            "C11": 62.4, "C22": 22.2, "C33": 77.6, "C44": 8.5, "C55": 17.5, "C66": 3.8,
+            "e14": -0.11, "e16": 0.24, "e21": 0.04, "e22": -0.16, "e23": 0.12, "e25": -0.08,
+            "e34": 0.01, "e36": -0.05,
+            "d14": -25.0, "d16": 71.6, "d21": 1.0, "d22": -9.6, "d23": 1.9, "d25": -4.3,
+            "d34": 3.2, "d36": -15.1},
+    "emlp": {"a": 5.08, "b": 6.25, "c": 5.40, "beta": 112.4, "volume": 158.41,
+             "eps11": 2.68, "eps22": 2.21, "eps33": 2.55,
+             "C11": 65.0, "C22": 31.4, "C33": 84.1, "C44": 9.2, "C55": 18.9, "C66": 5.7,
+             "e14": -0.11, "e16": 0.24, "e21": 0.04, "e22": -0.03, "e23": 0.10, "e25": -0.05,
+             "e34": 0.02, "e36": -0.05,
+             "d14": -19.8, "d16": 46.5, "d21": 0.3, "d22": -1.8, "d23": 1.2, "d25": -1.3,
+             "d34": 3.9, "d36": -9.9},
+}
+#: nonzero components for point group 2 with the two-fold axis along y (b)
+PIEZO_KEYS = ("14", "16", "21", "22", "23", "25", "34", "36")
+STIFF_KEYS = ("11", "22", "33", "44", "55", "66", "12", "13", "23", "15", "25", "35", "46")
+
+
+# ---------------------------------------------------------------------- config
+def load_config(path: str | Path, overrides: list[str] = ()) -> dict:
+    cfg = yaml.safe_load(Path(path).read_text()) or {}
+    for text in overrides:
+        if "=" not in text:
+            raise SystemExit(f"override {text!r}: expected key=value")
+        key, value = text.split("=", 1)
+        node = cfg
+        parts = key.split(".")
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = yaml.safe_load(value)
+    cfg.setdefault("workdir", "runs/beta_glycine")
+    cfg.setdefault("molecule_id", "beta-glycine")
+    cfg.setdefault("seed", 0)
+    return cfg
+
+
+class Study:
+    """Paths and shared state of one study run (``cfg`` resolved, see config.yaml)."""
+
+    def __init__(self, cfg: dict, labeler: Callable | None = None, log=print) -> None:
+        self.cfg = cfg
+        self.workdir = Path(cfg["workdir"])
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        self.log = log
+        self._labeler = labeler
+        self.reference = read_structures(cfg["input"])[0].copy(
+            energy=None, forces=None, stress=None, info={})
+        r = cfg.get("reference", {})
+        self.fd = FDSettings(field_step=float(r.get("field_step_au", 0.005)) * FIELD_AU_IN_V_PER_A,
+                             strain_step=float(r.get("strain_step", 0.01)),
+                             points=int(r.get("points", 2)))
+        (self.workdir / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+
+    @property
+    def store_path(self) -> Path:
+        return self.workdir / "labels.h5"
+
+    def labeler(self) -> Callable:
+        if self._labeler is None:
+            from emlpack.qm.cp2k_labeler import CP2KLabeler, CP2KSettings
+
+            self._labeler = CP2KLabeler(CP2KSettings(**self.cfg.get("cp2k", {})),
+                                        workdir=self.workdir / "scratch")
+        return self._labeler
+
+    def level(self) -> str:
+        lab = self.labeler()
+        settings = getattr(lab, "settings", None)
+        return settings.level() if settings is not None else getattr(lab, "level", "custom")
+
+    def fd_tasks(self):
+        return reference_tasks(self.reference, self.fd, prefix="ref")
+
+    def round_tasks(self) -> list[LabelTask]:
+        """Tasks of every round whose samples can be generated now, interleaved by set."""
+        out = []
+        for rnd in self.cfg.get("rounds", []):
+            index = int(rnd["round"])
+            hessian = None
+            if rnd.get("hessian") == "model":
+                path = self.workdir / f"hessian_r{index}.npy"
+                if not path.exists():
+                    continue  # `sample` has not run yet
+                hessian = np.load(path)
+            tasks = crystal_tasks(
+                self.reference, {"field": rnd.get("field", 0), "stress": rnd.get("stress", 0)},
+                seed=self.cfg["seed"], round_index=index, hessian=hessian,
+                temperature=float(rnd.get("temperature", 600.0)),
+                sigma=float(rnd.get("sigma", 0.05)),
+                max_strain=float(rnd.get("max_strain", 0.02)),
+                max_field_au=float(rnd.get("max_field_au", 0.01)),
+                min_eigenvalue=rnd.get("min_eigenvalue"), molecule_id=self.cfg["molecule_id"])
+            field = [t for t in tasks if not t.stress]
+            stress = [t for t in tasks if t.stress]
+            for k in range(max(len(field), len(stress))):
+                out += [lst[k] for lst in (field, stress) if k < len(lst)]
+        return out
+
+
+# ---------------------------------------------------------------------- stages
+def stage_label(study: Study, until: dt.datetime | None = None) -> dict:
+    """Label the FD reference calculations, then the round samples, skipping stored keys."""
+    todo = [LabelTask(t.key, t.structure.copy(info={"key": t.key, "kind": t.kind,
+                                                     "molecule_id": study.cfg["molecule_id"]},
+                                               source=t.key), t.stress)
+            for t in study.fd_tasks()]
+    todo += study.round_tasks()
+    n_new = n_fail = 0
+    with DatasetStore(study.store_path, "a") as store:
+        done = store.done_keys()
+        pending = [t for t in todo if t.key not in done]
+        study.log(f"label: {len(todo)} tasks, {len(todo) - len(pending)} done,"
+                  f" {len(pending)} to go ({study.level()})")
+        for t in pending:
+            if until is not None and dt.datetime.now(dt.timezone.utc) >= until:
+                study.log(f"label: stopping at {until:%H:%M} UTC")
+                break
+            t0 = time.perf_counter()
+            try:
+                out = study.labeler()(t.structure, stress=t.stress)
+            except Exception as exc:  # recorded, not fatal: the store keeps the reason
+                store.add_failures([{"key": t.key, "molecule_id": study.cfg["molecule_id"],
+                                     "kind": t.structure.info.get("kind", ""),
+                                     "reason": f"{type(exc).__name__}: {exc}"[:1000]}])
+                n_fail += 1
+                study.log(f"label: {t.key} FAILED: {exc}")
+                continue
+            wall = time.perf_counter() - t0
+            out.info = {"key": t.key, "molecule_id": study.cfg["molecule_id"],
+                        "kind": t.structure.info.get("kind", ""), "level": study.level(),
+                        "wall_time": float(out.info.get("wall_time", wall))}
+            store.append(out)
+            n_new += 1
+            study.log(f"label: {t.key} done in {wall:.1f} s")
+        n_total = len(store)
+    return {"new": n_new, "failed": n_fail, "stored": n_total}
+
+
+def _labeled(store: DatasetStore) -> dict[str, Structure]:
+    return {s.info["key"]: s for s in store}
+
+
+def stage_reference(study: Study) -> dict | None:
+    """FD DFT tensors from the stored calculations -> WORKDIR/dft.json (None if incomplete)."""
+    tasks = study.fd_tasks()
+    with DatasetStore(study.store_path, "r") as store:
+        labeled = _labeled(store)
+    try:
+        tensors = reference_tensors(tasks, labeled, study.fd)
+    except ReferenceError as exc:
+        study.log(f"reference: not yet possible: {exc}")
+        return None
+    out = tensors.as_dict()
+    out["lattice"] = lattice(labeled["ref/zero"].cell)
+    out["wall_time_s"] = [float(labeled[t.key].info.get("wall_time", np.nan)) for t in tasks]
+    _write_json(study.workdir / "dft.json", out)
+    study.log(f"reference: eps diag {np.diag(tensors.dielectric).round(3).tolist()}")
+    return out
+
+
+def _train_store(study: Study) -> Path:
+    """A store with the training records (optionally without the FD calculations)."""
+    use_fd = bool(study.cfg.get("training", {}).get("use_reference_calcs", True))
+    path = study.workdir / "train_data.h5"
+    tmp = path.with_suffix(".tmp.h5")
+    tmp.unlink(missing_ok=True)
+    with DatasetStore(study.store_path, "r") as src, DatasetStore(tmp, "a") as dst:
+        keep = [s for s in src if use_fd or not s.info["key"].startswith("ref/")]
+        for s in keep:
+            s.info = {k: v for k, v in s.info.items() if isinstance(v, (str, float))}
+        dst.append(keep)
+        n = len(keep)
+    os.replace(tmp, path)
+    study.log(f"train: {n} labeled configurations (FD calculations included: {use_fd})")
+    return path
+
+
+def _round_dir(study: Study) -> Path:
+    rounds = [int(r["round"]) for r in study.cfg.get("rounds", [])
+              if r.get("hessian") != "model" or (study.workdir / f"hessian_r{r['round']}.npy")
+              .exists()]
+    return study.workdir / f"model_r{max(rounds, default=0)}"
+
+
+def stage_train(study: Study) -> Path:
+    from emlpack.train.config import load_config as load_train_config
+    from emlpack.train.trainer import train
+
+    t = study.cfg.get("training", {})
+    data = _train_store(study)
+    out_dir = _round_dir(study)
+    overrides = [f"data.path={data}", f"output.dir={out_dir}", "data.reference=constant",
+                 "data.split=configuration", *t.get("overrides", [])]
+    cfg = load_train_config(_resolve(t.get("config", HERE / "train.yaml")), overrides)
+    best = train(cfg)
+    study.log(f"train: best model {best}")
+    return best
+
+
+def _model_path(study: Study) -> Path:
+    path = _round_dir(study) / "best.pt"
+    if not path.exists():
+        raise SystemExit(f"{path}: no trained model (run the train stage)")
+    return path
+
+
+def stage_sample(study: Study) -> None:
+    """Save the BO cell Hessian of the latest model at the input structure for the next
+    model-Hessian round (whose samples `label` then generates)."""
+    from emlpack.model_labeler import bo_cell_hessian
+    from emlpack.nn.checkpoint import load_model
+
+    pending = [int(r["round"]) for r in study.cfg.get("rounds", [])
+               if r.get("hessian") == "model"
+               and not (study.workdir / f"hessian_r{r['round']}.npy").exists()]
+    if not pending:
+        study.log("sample: no model-Hessian round pending")
+        return
+    model = load_model(_model_path(study))
+    h = bo_cell_hessian(model, study.reference)
+    path = study.workdir / f"hessian_r{min(pending)}.npy"
+    np.save(path.with_suffix(".tmp.npy"), h)
+    os.replace(path.with_suffix(".tmp.npy"), path)
+    w = np.linalg.eigvalsh(h)
+    study.log(f"sample: model Hessian saved to {path} (eigenvalues {w[:8].round(3).tolist()} ...)")
+
+
+def lattice(cell: np.ndarray) -> dict:
+    from ase.geometry import cell_to_cellpar
+
+    a, b, c, alpha, beta, gamma = cell_to_cellpar(cell)
+    return {"a": a, "b": b, "c": c, "alpha": alpha, "beta": beta, "gamma": gamma,
+            "volume": float(abs(np.linalg.det(cell)))}
+
+
+def stage_emlp(study: Study) -> dict:
+    """BO cell optimisation with the model; tensors at the optimum and at the input geometry."""
+    from emlpack.nn.checkpoint import load_model
+    from emlpack.optimize import optimize
+    from emlpack.relax import relax_pairs
+    from emlpack.response import crystal_response
+
+    e = study.cfg.get("emlp", {})
+    model = load_model(_model_path(study))
+    s0 = study.reference
+    r = relax_pairs(model, s0, fmax=1e-6)[0]
+    out: dict = {"model": str(_model_path(study))}
+    if r.failed:
+        out["input_geometry"] = {"error": f"pair relaxation failed: {r.reason}"}
+    else:
+        s_in = s0.copy(pairs=r.pairs)
+        out["input_geometry"] = {"lattice": lattice(s_in.cell),
+                                 **crystal_response(model, s_in).as_dict()}
+        s0 = s_in
+    t0 = time.perf_counter()
+    res = optimize(model, s0, cell=True, fmax=float(e.get("fmax", 1e-4)),
+                   smax=float(e.get("smax", 1e-6)),
+                   max_iterations=int(e.get("max_iterations", 60)),
+                   log=study.log if e.get("verbose") else None)
+    opt = {"converged": res.converged, "iterations": res.iterations, "reason": res.reason,
+           "max_force": res.max_force, "max_stress_GPa": res.max_stress * EV_PER_A3_IN_GPA,
+           "min_curvature": res.min_curvature, "time_s": time.perf_counter() - t0,
+           "lattice": lattice(res.structure.cell)}
+    try:
+        opt.update(crystal_response(model, res.structure).as_dict())
+    except np.linalg.LinAlgError as exc:
+        opt["error"] = f"response failed: {exc}"
+    out["optimized"] = opt
+    _write_json(study.workdir / "emlp.json", out)
+    study.log(f"emlp: optimisation converged={res.converged} ({res.reason or 'ok'}),"
+              f" lattice {lattice(res.structure.cell)}")
+    return out
+
+
+# ---------------------------------------------------------------------- table
+def _flat(prefix: str, d: dict | None, kind: str) -> dict[str, float]:
+    """Named components (eps11, C11, e14, d14, ...) of a tensor dict in report units."""
+    if not d or "error" in d and len(d) == 1:
+        return {}
+    out: dict[str, float] = {}
+    key = {"dft": ("dielectric", "stiffness_voigt_GPa", "piezo_e_voigt_C_per_m2",
+                   "piezo_d_voigt_pm_per_V"),
+           "clamped": ("dielectric_ion_clamped", "stiffness_clamped_ion_voigt_GPa",
+                       "piezo_e_clamped_ion_voigt_C_per_m2", None),
+           "relaxed": ("dielectric_ion_clamped", "stiffness_voigt_GPa",
+                       "piezo_e_voigt_C_per_m2", "piezo_d_voigt_pm_per_V")}[kind]
+    eps, c, e, dd = (np.array(d[k]) if k else None for k in key)
+    if dd is None:  # d = e : C^-1 in report units (e/Å² over eV/Å³ is Å/V)
+        dd = (e / E_PER_A2_IN_C_PER_M2) @ np.linalg.inv(c / EV_PER_A3_IN_GPA)
+        dd = dd * A_PER_V_IN_PM_PER_V
+    for i in range(3):
+        out[f"eps{i + 1}{i + 1}"] = float(eps[i, i])
+    for k in STIFF_KEYS:
+        out[f"C{k}"] = float(c[int(k[0]) - 1, int(k[1]) - 1])
+    for k in PIEZO_KEYS:
+        out[f"e{k}"] = float(e[int(k[0]) - 1, int(k[1]) - 1])
+        out[f"d{k}"] = float(dd[int(k[0]) - 1, int(k[1]) - 1])
+    if "lattice" in d:
+        lat = d["lattice"]
+        out.update({k: float(lat[k]) for k in ("a", "b", "c", "beta", "volume")})
+    return out
+
+
+def _dev(a: float | None, b: float | None) -> float | None:
+    if a is None or b is None or not np.isfinite(a) or not np.isfinite(b) or a == 0:
+        return None
+    return 100.0 * (b - a) / abs(a)
+
+
+def stage_table(study: Study, out_dir: Path | None = None) -> dict:
+    out_dir = Path(out_dir or study.cfg.get("results_dir", HERE))
+    dft = _read_json(study.workdir / "dft.json")
+    emlp = _read_json(study.workdir / "emlp.json")
+    with DatasetStore(study.store_path, "r") as store:
+        recs = list(store)
+        failures = store.failures()
+    n_fd = sum(s.info["key"].startswith("ref/") for s in recs)
+    walls = np.array([float(s.info.get("wall_time", np.nan)) for s in recs])
+    n_field = sum(not s.info["key"].startswith("ref/") and bool(np.any(s.field)) for s in recs)
+    n_stress = sum(not s.info["key"].startswith("ref/") and s.stress is not None for s in recs)
+    dft_v = _flat("dft", dft, "dft")
+    if dft:
+        dft_v.update({k: float(dft["lattice"][k]) for k in ("a", "b", "c", "beta", "volume")})
+    opt = (emlp or {}).get("optimized", {})
+    cl_v = _flat("emlp", opt if "stiffness_voigt_GPa" in opt else None, "clamped")
+    rel_v = _flat("emlp", opt if "stiffness_voigt_GPa" in opt else None, "relaxed")
+    inp = (emlp or {}).get("input_geometry", {})
+    cl_in = _flat("emlp", inp if "stiffness_voigt_GPa" in inp else None, "clamped")
+    names = (["a", "b", "c", "beta", "volume", "eps11", "eps22", "eps33"]
+             + [f"C{k}" for k in STIFF_KEYS] + [f"e{k}" for k in PIEZO_KEYS]
+             + [f"d{k}" for k in PIEZO_KEYS])
+    rows = []
+    for n in names:
+        row = {"quantity": n, "dft": dft_v.get(n), "emlp_clamped": cl_v.get(n),
+               "deviation_pct": _dev(dft_v.get(n), cl_v.get(n)),
+               "emlp_clamped_at_dft_geometry": cl_in.get(n),
+               "deviation_at_dft_geometry_pct": _dev(dft_v.get(n), cl_in.get(n)),
+               "emlp_relaxed_ion": rel_v.get(n),
+               "paper_pbe": PAPER["pbe"].get(n), "paper_emlp": PAPER["emlp"].get(n)}
+        rows.append(row)
+    summary = {
+        "labeler_level": study.level(),
+        "labeler_settings": getattr(getattr(study.labeler(), "settings", None), "to_dict",
+                                    lambda: {})(),
+        "n_configurations": len(recs), "n_fd_calculations": n_fd,
+        "n_field_set": n_field, "n_stress_set": n_stress, "n_failures": len(failures),
+        "wall_time_per_point_s": float(np.nanmean(walls)) if len(walls) else None,
+        "total_dft_time_h": float(np.nansum(walls) / 3600.0) if len(walls) else None,
+        "fd_settings": {"field_step_au": study.fd.field_step / FIELD_AU_IN_V_PER_A,
+                        "strain_step": study.fd.strain_step, "points": study.fd.points},
+        "emlp_optimisation": {k: opt.get(k) for k in ("converged", "iterations", "reason",
+                                                      "max_force", "max_stress_GPa")},
+        "training": _training_summary(study),
+    }
+    result = {"summary": summary, "rows": rows, "dft": dft, "emlp": emlp,
+              "units": {"lattice": "Å, degrees, Å^3", "C": "GPa", "e": "C/m^2", "d": "pm/V"}}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    _write_json(out_dir / "results.json", result)
+    _write_text(out_dir / "results.md", markdown(result, study.cfg.get("notes", "")))
+    study.log(f"table: {out_dir / 'results.md'}")
+    return result
+
+
+def _training_summary(study: Study) -> dict:
+    run = _round_dir(study)
+    log = run / "log.csv"
+    if not log.exists():
+        return {}
+    import csv
+
+    rows = list(csv.DictReader(log.open()))
+    if not rows:
+        return {}
+    best = min(rows, key=lambda r: float(r["val_loss"]))
+    keep = ("epoch", "val_loss", "val_energy_mae", "val_forces_mae", "val_pair_forces_mae",
+            "val_stress_mae")
+    return {"run": str(run), "epochs": len(rows),
+            "best": {k: float(best[k]) for k in keep if k in best and best[k] != ""}}
+
+
+def _fmt(v: float | None, n: str) -> str:
+    if v is None:
+        return "–"
+    if n.startswith("e"):
+        return f"{v:.3f}"
+    return f"{v:.4g}" if abs(v) < 1000 else f"{v:.1f}"
+
+
+def markdown(result: dict, notes: str = "") -> str:
+    s = result["summary"]
+    lines = ["# beta-glycine: DFT vs eMLP", "",
+             "Generated by `examples/beta_glycine/run_study.py table`.", ""]
+    if notes:
+        lines += [notes.strip(), ""]
+    lines += [
+        f"- DFT level: `{s['labeler_level']}`",
+        f"- labeled configurations: {s['n_configurations']} ({s['n_fd_calculations']}"
+        f" finite-difference calculations, {s['n_field_set']} field-set and"
+        f" {s['n_stress_set']} stress-set samples; {s['n_failures']} failures)",
+        f"- wall time per point: {_fmt(s['wall_time_per_point_s'], 't')} s;"
+        f" total DFT time {_fmt(s['total_dft_time_h'], 't')} h",
+        f"- finite differences: {s['fd_settings']}",
+        f"- eMLP BO cell optimisation: {s['emlp_optimisation']}",
+        f"- training: {s['training']}", "",
+        "Columns: **DFT** = our finite-difference DFT (ion-clamped ε, clamped-ion C and proper e,"
+        " d = e:C⁻¹ of those; lattice = the input cell, not re-optimised);"
+        " **eMLP cl.** = eMLP clamped-ion tensors at its own optimised cell (dev. % vs DFT);"
+        " **eMLP@DFT** = eMLP clamped-ion at the input geometry (dev. %);"
+        " **eMLP rel.** = eMLP relaxed-ion (the paper's kind for C, e, d);"
+        " **paper PBE / paper eMLP** = the paper's numbers (relaxed-ion C, e, d; other DFT"
+        " settings, not expected to match).", "",
+        "| quantity | DFT | eMLP cl. | dev. % | eMLP@DFT | dev. % | eMLP rel. | paper PBE |"
+        " paper eMLP |",
+        "|---|---|---|---|---|---|---|---|---|"]
+    for r in result["rows"]:
+        n = r["quantity"]
+        lines.append(
+            f"| {n} | {_fmt(r['dft'], n)} | {_fmt(r['emlp_clamped'], n)} |"
+            f" {_fmt(r['deviation_pct'], 'p')} | {_fmt(r['emlp_clamped_at_dft_geometry'], n)} |"
+            f" {_fmt(r['deviation_at_dft_geometry_pct'], 'p')} |"
+            f" {_fmt(r['emlp_relaxed_ion'], n)} | {_fmt(r['paper_pbe'], n)} |"
+            f" {_fmt(r['paper_emlp'], n)} |")
+    within = [r["quantity"] for r in result["rows"]
+              if r["deviation_pct"] is not None and abs(r["deviation_pct"]) <= 10]
+    outside = [r["quantity"] for r in result["rows"]
+               if r["deviation_pct"] is not None and abs(r["deviation_pct"]) > 10]
+    lines += ["", f"Within 10 % of our DFT (eMLP cl. vs DFT): {', '.join(within) or 'none'}.",
+              f"Outside 10 %: {', '.join(outside) or 'none'}.", ""]
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------- helpers
+def _resolve(path) -> Path:
+    p = Path(path)
+    return p if p.is_absolute() or p.exists() else HERE / p
+
+
+def _write_json(path: Path, data) -> None:
+    _write_text(path, json.dumps(data, indent=1, default=_jsonable))
+
+
+def _jsonable(x):
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, ReferenceTensors):
+        return x.as_dict()
+    return str(x)
+
+
+def _write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _read_json(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def run(stages: list[str], cfg: dict, labeler: Callable | None = None,
+        until: dt.datetime | None = None, log=print) -> Study:
+    """Run ``stages`` in order (``"all"``: label, reference, train, emlp, table)."""
+    study = Study(copy.deepcopy(cfg), labeler, log)
+    order = []
+    for s in stages:
+        order += ["label", "reference", "train", "emlp", "table"] if s == "all" else [s]
+    for s in order:
+        if s not in STAGES:
+            raise SystemExit(f"unknown stage {s!r} ({', '.join(STAGES)}, all)")
+        {"label": lambda: stage_label(study, until), "reference": lambda: stage_reference(study),
+         "train": lambda: stage_train(study), "sample": lambda: stage_sample(study),
+         "emlp": lambda: stage_emlp(study), "table": lambda: stage_table(study)}[s]()
+    return study
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("stages", nargs="+", help=f"{', '.join(STAGES)} or all; key=value overrides")
+    p.add_argument("--config", default=str(HERE / "config.yaml"))
+    p.add_argument("--until", help="label: start no calculation after HH:MM (UTC)")
+    args = p.parse_args(argv)
+    stages = [s for s in args.stages if "=" not in s]
+    overrides = [s for s in args.stages if "=" in s]
+    until = None
+    if args.until:
+        hh, mm = (int(x) for x in args.until.split(":"))
+        now = dt.datetime.now(dt.timezone.utc)
+        until = now.replace(hour=hh, minute=mm, second=0, microsecond=0)
+        if until < now - dt.timedelta(hours=12):
+            until += dt.timedelta(days=1)
+    run(stages, load_config(args.config, overrides), until=until,
+        log=lambda m: print(f"[{dt.datetime.now(dt.timezone.utc):%H:%M:%S}] {m}", flush=True))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,82 @@
+"""examples/beta_glycine/run_study.py end to end with a fast fake labeler (an eMLP with
+springs on a two-water crystal), so that the script cannot rot: labeling (resumable), FD
+reference tensors, training, a model-Hessian round, BO cell optimisation, the table."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+
+import numpy as np
+import pytest
+
+from emlpack.data.store import DatasetStore
+from emlpack.io.extxyz import write_structures
+from emlpack.model_labeler import ModelLabeler
+from emlpack.optimize import optimize
+from emlpack.response import crystal_response
+from tests.conftest import ROOT
+from tests.nn.helpers import water_crystal
+from tests.response.toy import spring_model
+
+
+def _load_study():
+    spec = importlib.util.spec_from_file_location(
+        "run_study", ROOT / "examples" / "beta_glycine" / "run_study.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def fake():
+    s = water_crystal()
+    model = spring_model(s, core_cutoff=3.5, pair_cutoff=2.0)
+    res = optimize(model, s, fmax=1e-8)
+    assert res.converged, res.reason
+    return model, res.structure
+
+
+def test_study_runs_end_to_end_and_resumes(tmp_path, fake):
+    model, s = fake
+    study_mod = _load_study()
+    xyz = tmp_path / "crystal.xyz"
+    write_structures(xyz, [s])
+    cfg = study_mod.load_config(ROOT / "examples" / "beta_glycine" / "config.yaml", [
+        f"input={xyz}", f"workdir={tmp_path / 'run'}", f"results_dir={tmp_path / 'out'}",
+        "molecule_id=water-crystal", "reference.strain_step=0.001",
+        "reference.field_step_au=0.0001",  # the spring model is very nonlinear in strong fields
+        "rounds=[{round: 0, field: 3, stress: 3, sigma: 0.02, max_strain: 0.01,"
+        " max_field_au: 0.001}, {round: 1, field: 2, stress: 2, hessian: model,"
+        " temperature: 100, min_eigenvalue: 5.0, max_field_au: 0.001}]",
+        "training.overrides=['model.n_features=8', 'model.n_filters=8', 'model.n_rbf=8',"
+        " 'training.max_epochs=2', 'training.batch_size=8', 'model.elements=[1, 8]']",
+        "emlp.max_iterations=3", "emlp.fmax=1e-3", "emlp.smax=1e-4",
+    ])
+    labeler = ModelLabeler(model, fmax=1e-8)
+    lines = []
+    study_mod.run(["label", "reference", "train", "sample", "label", "train", "emlp",
+                   "table"], cfg, labeler=labeler, log=lines.append)
+    with DatasetStore(tmp_path / "run" / "labels.h5") as store:
+        keys = store.keys()
+    assert len(keys) == 19 + 6 + 4 and len(set(keys)) == len(keys)
+    assert sum(k.startswith("r1/") for k in keys) == 4
+    # resuming labels nothing twice
+    study_mod.run(["label"], cfg, labeler=labeler, log=lines.append)
+    with DatasetStore(tmp_path / "run" / "labels.h5") as store:
+        assert len(store) == len(keys)
+    # the DFT column is the fake labeler's own clamped-ion physics (2-point central
+    # differences at the study's steps: O(h^2) nonlinearity of the springs ~0.1 % at this step)
+    result = json.loads((tmp_path / "out" / "results.json").read_text())
+    rows = {r["quantity"]: r for r in result["rows"]}
+    exact = crystal_response(model, s)
+    for i in range(3):
+        chi = exact.dielectric_clamped[i, i] - 1.0
+        assert rows[f"eps{i + 1}{i + 1}"]["dft"] - 1.0 == pytest.approx(chi, rel=2e-3)
+    c11 = exact.as_dict()["stiffness_clamped_ion_voigt_GPa"][0][0]
+    assert rows["C11"]["dft"] == pytest.approx(c11, rel=2e-2)
+    assert result["summary"]["n_configurations"] == len(keys)
+    assert result["summary"]["n_fd_calculations"] == 19
+    assert np.isfinite(rows["a"]["emlp_clamped"])
+    md = (tmp_path / "out" / "results.md").read_text()
+    assert "| C66 |" in md and "Within 10 %" in md
