@@ -266,8 +266,51 @@ def _add_optimize(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _add_md_analysis(sub) -> None:
+    p = sub.add_parser("md-analysis", help="conserved-quantity stability of MD trajectories"
+                       " (slope, max jump per atom; paper's scatter plot)")
+    p.add_argument("trajectories", nargs="+", help="extxyz trajectories written by 'emlp md'")
+    p.add_argument("--plot", help="scatter plot PNG (|slope| vs max jump, log-log)")
+    p.add_argument("--json", help="JSON output with one entry per run")
+    p.add_argument("--discard", type=int, default=10, help="initial steps discarded (10)")
+    p.add_argument("--groups", nargs="+", help="one group name per trajectory (plot colours)")
+
+    def run(args):
+        from emlpack.md_analysis import run_analysis
+
+        run_analysis(args.trajectories, args.plot, args.json, args.discard, args.groups)
+
+    p.set_defaults(func=run)
+
+
+def _add_md_ir(sub) -> None:
+    p = sub.add_parser("md-ir", help="IR spectrum from the dipole autocorrelation of an MD"
+                       " trajectory (JSON + PNG)")
+    p.add_argument("trajectory", help="extxyz trajectory written by 'emlp md'")
+    p.add_argument("-o", "--output", default="md_ir.json", help="JSON output")
+    p.add_argument("--png", help="PNG plot")
+    p.add_argument("--harmonic", help="'emlp ir' JSON to overlay (harmonic spectrum)")
+    p.add_argument("--temperature", type=float, help="K (default: mean of the frames)")
+    p.add_argument("--discard", type=int, default=0, help="initial steps discarded")
+    p.add_argument("--window", default="hann", choices=["hann", "gaussian", "none"])
+    p.add_argument("--correction", default="harmonic",
+                   choices=["harmonic", "schofield", "standard", "none"],
+                   help="quantum correction factor (default harmonic)")
+    p.add_argument("--padding", type=int, default=8, help="zero-padding factor")
+
+    def run(args):
+        from emlpack.md_analysis import run_md_ir
+
+        run_md_ir(args.trajectory, args.output, args.png, args.harmonic, args.temperature,
+                  args.discard, window=args.window, correction=args.correction,
+                  padding=args.padding)
+
+    p.set_defaults(func=run)
+
+
 COMMANDS = [_add_train, _add_evaluate, _add_demo, _add_relabel, _add_convert_reference, _add_label]
 COMMANDS += [_add_ir, _add_polarizability, _add_response, _add_optimize]
+COMMANDS += [_add_md_analysis, _add_md_ir]
 
 
 def main(argv: list[str] | None = None) -> int:
