@@ -364,7 +364,9 @@ def _bo_dynamics(model, s, h_pp_inv, velocities, dt, n_steps, fmax=1e-6):
 def _compare_with_harmonic(spec, harmonic, temperature):
     """Every IR-active harmonic line (> 1e-3 of the strongest) has an MD peak within the
     resolution plus 2% (anharmonicity at low T, velocity Verlet's blue shift ~ (w dt)^2/24);
-    the total line area equals the sum of harmonic intensities (equipartition)."""
+    the total line area equals the sum of harmonic intensities (equipartition) within 10%:
+    velocity Verlet's sampled kinetic energy differs by O((w dt)^2) (up to ~8% at w dt = 0.48,
+    the highest mode here) and the cross terms between modes average out only as 1/(dw T)."""
     pos, _ = spec.peaks(1e-4)
     active = harmonic.intensities > 1e-3 * harmonic.intensities.max()
     assert active.sum() >= 2
@@ -372,7 +374,7 @@ def _compare_with_harmonic(spec, harmonic, temperature):
         nearest = pos[np.argmin(np.abs(pos - nu))]
         assert abs(nearest - nu) < spec.resolution + 0.02 * nu, (nu, pos)
     top = harmonic.frequencies.max() + 4 * spec.resolution
-    assert spec.area(0.0, top) == pytest.approx(harmonic.intensities.sum(), rel=0.05)
+    assert spec.area(0.0, top) == pytest.approx(harmonic.intensities.sum(), rel=0.1)
     return pos
 
 
