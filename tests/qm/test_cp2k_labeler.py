@@ -15,13 +15,16 @@ import pytest
 
 from emlpack.data.store import DatasetStore
 from emlpack.qm.cp2k_labeler import (
+    CP2KError,
     CP2KInputError,
     CP2KLabeler,
     CP2KSettings,
     cp2k_available,
+    field_force_check,
     label_into_store,
     label_task,
     map_centres_to_cores,
+    parse_output,
 )
 from emlpack.structure import Structure
 from emlpack.units import FIELD_AU_IN_V_PER_A
@@ -57,13 +60,11 @@ def energy(s: Structure) -> float:
     return CP2KLabeler(FAST)(s).energy
 
 
-def fd_force(s: Structure, atom: int, axis: int, h: float = 0.005) -> float:
-    e = []
-    for sign in (1, -1):
-        p = s.positions.copy()
-        p[atom, axis] += sign * h
-        e.append(energy(s.copy(positions=p)))
-    return -(e[0] - e[1]) / (2 * h)
+@pytest.fixture(scope="module")
+def field_check(cp2k):
+    """O y-force at zero field and at FIELD, analytic and by central differences (6 runs)."""
+    (check,) = field_force_check(water(), SETTINGS, FIELD, components=((0, 1),))
+    return check
 
 
 @pytest.fixture(scope="module")
@@ -108,10 +109,10 @@ def test_centre_mapping_is_image_consistent():
     assert list(core) == [0, 1, 2, 3, 0]
 
 
-def test_forces_are_minus_energy_gradient(labeled):
-    for atom, axis in [(0, 1), (1, 0)]:
-        fd = fd_force(water(), atom, axis)
-        assert abs(labeled.forces[atom, axis] - fd) < 5e-3, (atom, axis, fd)
+def test_forces_are_minus_energy_gradient(labeled, field_check):
+    c = field_check
+    assert abs(c["force0"] - labeled.forces[0, 1]) < 1e-6  # FAST (no Wannier) = full run
+    assert abs(c["force0"] - c["force0_fd"]) < 5e-3, c
 
 
 def test_stress_is_finite_strain_derivative(labeled):
@@ -129,26 +130,25 @@ def test_stress_is_finite_strain_derivative(labeled):
         assert abs(labeled.stress[i, j] - fd) < 2e-5 + 1e-3 * abs(fd), (i, j, fd)
 
 
-def test_field_energy_sign(labeled):
+def test_field_energy_sign(labeled, field_check):
     """E(F) - E(-F) = -2 μ·F to first order: our E_ext = -Σ q F·r convention (eV, V/Å)."""
     mu = labeled.dipole()
-    de = energy(water(field=FIELD)) - energy(water(field=-FIELD))
+    de = field_check["energy"] - energy(water(field=-FIELD))
     expected = -2.0 * mu @ FIELD
     assert abs(de - expected) < 0.05 * abs(expected), (de, expected)
 
 
-def test_field_forces_are_minus_energy_gradient(labeled):
-    """Field forces (incl. the Berry-phase term) against finite differences at finite field."""
-    s = water(field=FIELD)
-    lab = CP2KLabeler(FAST)(s)
-    atom, axis = 0, 1
-    fd = fd_force(s, atom, axis)
-    assert abs(lab.forces[atom, axis] - fd) < 5e-3
+def test_field_forces_are_minus_energy_gradient(field_check):
+    """Field forces (incl. the Berry-phase term) against finite differences at finite field.
+
+    In this 5.5 Å box the field-induced force matches to ~4e-5 eV/Å; in a 3.5 Å box CP2K
+    2023.1's double-counted image term makes it 9% (0.011 eV/Å) off (docs/labeling.md).
+    """
+    c = field_check
+    assert abs(c["force"] - c["force_fd"]) < 5e-3, c
     # the field-induced force change itself (grid errors cancel): much tighter
-    fd0 = fd_force(water(), atom, axis)
-    induced, induced_fd = lab.forces[atom, axis] - labeled.forces[atom, axis], fd - fd0
-    assert abs(induced) > 0.05  # the field does move the force
-    assert abs(induced - induced_fd) < 1e-3 * max(1.0, abs(induced)) + 5e-4
+    assert abs(c["induced"]) > 0.05, c  # the field does move the force
+    assert abs(c["error"]) < 1e-3 * max(1.0, abs(c["induced"])) + 5e-4, c
 
 
 def test_stress_with_field_is_refused():
@@ -170,3 +170,15 @@ def test_failure_is_recorded_and_resume_skips(cp2k, tmp_path):
     assert "SCF not converged" in failure["reason"]
     again = label_into_store(items, path, bad)  # resumable: recorded failures are done
     assert again.n_skipped_done == 1 and again.n_failed_new == 0
+
+
+def test_crash_and_unconverged_localization_are_clear_errors(cp2k, tmp_path):
+    script = tmp_path / "fake_cp2k"
+    script.write_text("#!/bin/sh\necho 'ABORT: something broke' > emlp.out\nexit 3\n")
+    script.chmod(0o755)
+    broken = CP2KSettings(**{**FAST.to_dict(), "cp2k": str(script), "mpirun": None})
+    with pytest.raises(CP2KError, match=r"(?s)exit code 3.*something broke"):
+        CP2KLabeler(broken)(water())
+    text = "Crazy Wannier localization not converged after      3\n"
+    with pytest.raises(CP2KError, match="localization not converged after 3"):
+        parse_output(text + "ENERGY| Total FORCE_EVAL ( QS ) energy [a.u.]: -1.0\n", 3, False)

@@ -76,7 +76,8 @@ class CP2KSettings:
         eps_scf: SCF convergence (OT gradient, Hartree).
         max_scf: inner (OT) SCF iterations; outer_max_scf: outer SCF loops.
         eps_default: CP2K's EPS_DEFAULT (integral screening).
-        localize_method: ``&LOCALIZE METHOD`` (CRAZY or JACOBI); eps_localization its tolerance.
+        localize_method: ``&LOCALIZE METHOD`` (CRAZY or JACOBI); eps_localization its tolerance,
+            max_localization_iter its iteration limit (not converged = failure).
         wannier: compute Wannier centres (False: energy/forces/stress only, faster).
         n_processes: MPI processes; omp_threads: OMP_NUM_THREADS per process.
         timeout_s: wall-time limit of one CP2K run (s), None = unlimited.
@@ -96,6 +97,7 @@ class CP2KSettings:
     eps_default: float = 1e-12
     localize_method: str = "CRAZY"
     eps_localization: float = 1e-8
+    max_localization_iter: int = 10000
     wannier: bool = True
     n_processes: int = 2
     omp_threads: int = 1
@@ -207,7 +209,7 @@ def build_input(structure: Structure, settings: CP2KSettings, stress: bool,
     &LOCALIZE
       METHOD {s.localize_method}
       EPS_LOCALIZATION {s.eps_localization:g}
-      MAX_ITER 10000
+      MAX_ITER {int(s.max_localization_iter)}
       &PRINT
         &WANNIER_CENTERS
           IONS+CENTERS
@@ -305,6 +307,9 @@ def parse_output(text: str, n_atoms: int, stress: bool) -> dict:
     out["cp2k_version"] = m.group(1) if m else ""
     if re.search(r"SCF run NOT converged|outer SCF loop FAILED to converge", text):
         raise CP2KError("SCF not converged")
+    m = re.search(r"[Ll]ocali[sz]ation not converged after\s+(\d+)", text)
+    if m:
+        raise CP2KError(f"Wannier localization not converged after {m.group(1)} iterations")
     m = re.findall(rf"ENERGY\| Total FORCE_EVAL \( QS \) energy \[a\.u\.\]:\s+({_FLOAT})", text)
     if not m:
         raise CP2KError("no total energy in the CP2K output")
@@ -328,9 +333,9 @@ def parse_output(text: str, n_atoms: int, stress: bool) -> dict:
         if len(rows) != 3:
             raise CP2KError("could not parse the stress tensor in the CP2K output")
         out["stress_gpa"] = np.array(rows, dtype=float)
-    m = re.findall(rf"Spread Functional\s+sum_in\s+-w_i ln\(\|z_in\|\^2\)\s+({_FLOAT})", text)
+    m = re.findall(rf"Total Spread \(Berry\) :\s+({_FLOAT})", text)
     if m:
-        out["spread"] = float(m[-1])
+        out["spread"] = float(m[-1])  # sum_i -ln|z_i|^2 (dimensionless, Resta)
     return out
 
 
@@ -582,3 +587,42 @@ def label_into_store(
         store.close()
     summary.wall_time = time.perf_counter() - t0
     return summary
+
+
+# ---------------------------------------------------------------------------------- checks
+def field_force_check(structure: Structure, settings: CP2KSettings, field_v_per_a,
+                      components=((0, 0),), h: float = 0.005,
+                      workdir: str | Path | None = None) -> list[dict]:
+    """Berry-phase field forces against central finite differences of the energy.
+
+    CP2K 2023.1 double-counts field forces of atoms that interact with their own periodic
+    images (small cells). For each ``(atom, axis)`` this compares the field-induced force
+    ``F(field) - F(0)`` with the same difference of ``-dE/dr`` (step ``h`` Å), so that
+    grid and SCF errors common to both fields cancel. Costs ``2 + 4 * len(components)``
+    energy+force runs (Wannier localization off). Returns one dict per component with
+    ``induced`` and ``induced_fd`` (eV/Å) and their difference ``error``, the forces at the
+    field (``force``, ``force_fd``) and at zero field (``force0``, ``force0_fd``), and the two
+    energies (``energy0``, ``energy``; eV).
+    """
+    from dataclasses import replace
+
+    lab = CP2KLabeler(replace(settings, wannier=False), workdir=workdir)
+    fields = (np.zeros(3), np.asarray(field_v_per_a, dtype=float))
+    base = [lab(structure.copy(field=f)) for f in fields]
+    out = []
+    for atom, axis in components:
+        fd = []
+        for f in fields:
+            e = []
+            for sign in (1, -1):
+                p = structure.positions.copy()
+                p[atom, axis] += sign * h
+                e.append(lab(structure.copy(positions=p, field=f)).energy)
+            fd.append(-(e[0] - e[1]) / (2 * h))
+        induced = base[1].forces[atom, axis] - base[0].forces[atom, axis]
+        out.append({"atom": atom, "axis": axis, "induced": float(induced),
+                    "induced_fd": float(fd[1] - fd[0]), "error": float(induced - fd[1] + fd[0]),
+                    "force": float(base[1].forces[atom, axis]), "force_fd": float(fd[1]),
+                    "force0": float(base[0].forces[atom, axis]), "force0_fd": float(fd[0]),
+                    "energy0": base[0].energy, "energy": base[1].energy})
+    return out
