@@ -55,6 +55,7 @@ __all__ = [
     "read_conserved",
     "run_analysis",
     "run_md_ir",
+    "trajectory_file",
     "write_bytes_atomic",
     "write_json_atomic",
 ]
@@ -225,8 +226,19 @@ def analyze_conserved(
     )
 
 
+def trajectory_file(path: str | os.PathLike) -> Path:
+    """``path`` itself, or for an ``emlp md`` output directory its trajectory file."""
+    path = Path(path)
+    if path.is_dir():
+        from emlpack.md import TRAJECTORY
+
+        return path / TRAJECTORY
+    return path
+
+
 def read_conserved(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """(times fs, conserved energy eV, steps, n_atoms) from an ``emlp md`` extxyz trajectory.
+    """(times fs, conserved energy eV, steps, n_atoms) from an ``emlp md`` extxyz trajectory
+    (or its output directory).
 
     Raises:
         TrajectoryAnalysisError: naming the file and frame of a missing or bad key, or a
@@ -234,6 +246,7 @@ def read_conserved(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.
     """
     from emlpack.io import iread_structures
 
+    path = trajectory_file(path)
     times, energies, steps = [], [], []
     n_atoms = None
     for i, s in enumerate(iread_structures(path)):
@@ -264,7 +277,8 @@ def analyze_trajectory(
     """:func:`analyze_conserved` of the trajectory file ``path`` (frames' ``time``, ``step``
     and ``conserved_energy``; nuclei count from the frames)."""
     times, energies, steps, n_atoms = read_conserved(path)
-    return analyze_conserved(times, energies, n_atoms, steps, discard_steps, source=str(path))
+    return analyze_conserved(times, energies, n_atoms, steps, discard_steps,
+                             source=str(trajectory_file(path)))
 
 
 # ------------------------------------------------------------------------------------ plot
@@ -305,8 +319,10 @@ def plot_conserved(
     results = [r if isinstance(r, ConservedAnalysis) else analyze_trajectory(r) for r in runs]
     if not results:
         raise ValueError("plot_conserved: no runs")
-    if labels is None:
-        labels = [Path(r.source).stem if r.source else f"run {i}" for i, r in enumerate(results)]
+    if labels is None:  # file stems, or directory names when the stems repeat
+        labels = [Path(r.source).stem for r in results]
+        if len(set(labels)) < len(labels):
+            labels = [Path(r.source).parent.name or Path(r.source).stem for r in results]
     if groups is None:
         groups = [""] * len(results)
     if len(labels) != len(results) or len(groups) != len(results):

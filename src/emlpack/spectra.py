@@ -403,10 +403,13 @@ def read_dipoles(
     path: str | Path, discard_steps: int = 0
 ) -> tuple[np.ndarray, float, float]:
     """(dipoles [n, 3] e·Å, timestep fs, mean temperature K or nan) of an ``emlp md``
-    trajectory (frame keys ``dipole``, ``time``, ``step``, ``temperature``); frames with
-    ``step < first step + discard_steps`` are dropped. The frames must be evenly spaced."""
+    trajectory or output directory (frame keys ``dipole``, ``time``, ``step``,
+    ``temperature``); frames with ``step < first step + discard_steps`` are dropped. The
+    frames must be evenly spaced."""
     from emlpack.io import iread_structures
+    from emlpack.md_analysis import trajectory_file
 
+    path = trajectory_file(path)
     mu, times, steps, temps = [], [], [], []
     for i, s in enumerate(iread_structures(path)):
         where = f"{path}, frame {i}"
