@@ -176,9 +176,10 @@ def test_trajectory_file_analysis_plot_and_cli(tmp_path):
     results = plot_conserved(paths, png, groups=["a", "a", "b"])
     assert [r.classification for r in results] == ["stable", "transition", "unstable"]
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    out_json, out_png = tmp_path / "a.json", tmp_path / "cli.png"
+    out_json, out_png, series = tmp_path / "a.json", tmp_path / "cli.png", tmp_path / "e.png"
     assert main(["md-analysis", *map(str, paths), "--plot", str(out_png),
-                 "--json", str(out_json)]) == 0
+                 "--json", str(out_json), "--series", str(series)]) == 0
+    assert series.read_bytes()[:4] == b"\x89PNG"
     data = json.loads(out_json.read_text())
     assert [d["classification"] for d in data["runs"]] == ["stable", "transition", "unstable"]
     assert data["runs"][1]["max_jump_eV_per_atom"] == pytest.approx(results[1].max_jump)

@@ -274,11 +274,13 @@ def _add_md_analysis(sub) -> None:
     p.add_argument("--json", help="JSON output with one entry per run")
     p.add_argument("--discard", type=int, default=10, help="initial steps discarded (10)")
     p.add_argument("--groups", nargs="+", help="one group name per trajectory (plot colours)")
+    p.add_argument("--series", help="PNG of E_cons(t) per atom of every run")
 
     def run(args):
         from emlpack.md_analysis import run_analysis
 
-        run_analysis(args.trajectories, args.plot, args.json, args.discard, args.groups)
+        run_analysis(args.trajectories, args.plot, args.json, args.discard, args.groups,
+                     args.series)
 
     p.set_defaults(func=run)
 

@@ -52,6 +52,7 @@ __all__ = [
     "analyze_trajectory",
     "classify",
     "plot_conserved",
+    "plot_conserved_series",
     "read_conserved",
     "run_analysis",
     "run_md_ir",
@@ -379,6 +380,40 @@ def plot_conserved(
     return results
 
 
+def plot_conserved_series(
+    paths: Sequence[str | os.PathLike],
+    png_path: str | os.PathLike,
+    labels: Sequence[str] | None = None,
+    discard_steps: int = DISCARD_STEPS,
+) -> None:
+    """The paper's panels (b)/(c): ``E_cons(t) - E_cons(t_first)`` (eV per atom) of each
+    trajectory after the discard, with its fitted line; PNG written atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for k, path in enumerate(paths):
+        times, energies, steps, n_atoms = read_conserved(path)
+        r = analyze_conserved(times, energies, n_atoms, steps, discard_steps,
+                              source=str(trajectory_file(path)))
+        keep = steps >= steps[0] + discard_steps
+        t, e = times[keep], energies[keep] / n_atoms
+        label = labels[k] if labels else Path(r.source).parent.name or Path(r.source).stem
+        ax.plot(t, e - e[0], color=f"C{k}", lw=1,
+                label=f"{label}: {r.classification}, max jump {r.max_jump:.1e}")
+        ax.plot(t, r.intercept - e[0] + r.slope * (t - t[0]), color=f"C{k}", ls=":", lw=1)
+    ax.set_xlabel("time (fs)")
+    ax.set_ylabel(r"$E_\mathrm{cons}(t) - E_\mathrm{cons}(t_0)$ (eV per atom)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=120)
+    plt.close(fig)
+    write_bytes_atomic(png_path, buffer.getvalue())
+
+
 # ------------------------------------------------------------------------------- commands
 def run_analysis(
     paths: Sequence[str | os.PathLike],
@@ -386,16 +421,21 @@ def run_analysis(
     json_path: str | os.PathLike | None = None,
     discard_steps: int = DISCARD_STEPS,
     groups: Sequence[str] | None = None,
+    series: str | os.PathLike | None = None,
     log=print,
 ) -> list[ConservedAnalysis]:
-    """``emlp md-analysis``: analyse ``paths``, print one line each, write the scatter PNG
-    and a JSON ``{"runs": [as_dict(), ...]}`` (both atomically) when asked."""
+    """``emlp md-analysis``: analyse ``paths``, print one line each, write the scatter PNG,
+    the E_cons(t) plot (``series``) and a JSON ``{"runs": [as_dict(), ...]}`` (all
+    atomically) when asked."""
     results = [analyze_trajectory(p, discard_steps) for p in paths]
     for r in results:
         log(r.text())
     if plot:
         plot_conserved(results, plot, groups=groups)
         log(f"wrote {plot}")
+    if series:
+        plot_conserved_series(paths, series, discard_steps=discard_steps)
+        log(f"wrote {series}")
     if json_path:
         write_json_atomic(json_path, {"discard_steps": discard_steps,
                                       "runs": [r.as_dict() for r in results]})
