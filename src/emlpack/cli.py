@@ -266,6 +266,53 @@ def _add_optimize(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _add_md(sub) -> None:
+    p = sub.add_parser("md", help="Born-Oppenheimer MD with relaxed electron pairs (NVT/NVE,"
+                       " optional field); resumable")
+    p.add_argument("model", help="emlpack checkpoint (.pt)")
+    p.add_argument("start", help="extxyz start structure (pairs as Es rows optional)")
+    p.add_argument("--frame", type=int, default=0, help="frame of the start file (0)")
+    p.add_argument("--steps", type=int, default=1000, help="total MD steps (1000)")
+    p.add_argument("--dt", type=float, default=0.5, help="time step, fs (0.5)")
+    p.add_argument("--temperature", type=float, default=300.0,
+                   help="K: NVT target and initial velocities (300)")
+    p.add_argument("--nve", action="store_true", help="NVE (velocity Verlet) instead of NVT")
+    fld = p.add_mutually_exclusive_group()
+    fld.add_argument("--field", type=float, nargs=3, metavar=("EX", "EY", "EZ"),
+                     help="homogeneous field, V/Å (default: the start file's)")
+    fld.add_argument("--field-au", type=float, nargs=3, metavar=("EX", "EY", "EZ"),
+                     help="homogeneous field, atomic units")
+    p.add_argument("--relax", default="warm", choices=["warm", "paper"],
+                   help="pair relaxation: warm-started quasi-Newton or the paper's boxed"
+                   " L-BFGS-B")
+    p.add_argument("--fmax", type=float, default=1e-5, help="pair-force tolerance, eV/Å")
+    p.add_argument("--tdamp", type=float, default=100.0, help="thermostat time constant, fs")
+    p.add_argument("--record-every", type=int, default=1, help="frame every N steps (1)")
+    p.add_argument("--checkpoint-every", type=int, default=10, help="flush every N steps")
+    p.add_argument("--curvature-every", type=int, default=50,
+                   help="exact pair Hessian (curvature check) every N steps (50)")
+    p.add_argument("--output", required=True, help="output directory")
+    p.add_argument("--seed", type=int, default=0, help="seed of the initial velocities")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (1)")
+    p.add_argument("--no-resume", action="store_true", help="start over (deletes the old run)")
+
+    def run(args):
+        from emlpack.md import MDWatchdogError, run_md_file
+
+        try:
+            result = run_md_file(args)
+        except MDWatchdogError as exc:
+            print(f"emlp md: watchdog: {exc}", file=sys.stderr)
+            return 3
+        except ValueError as exc:
+            print(f"emlp md: error: {exc}", file=sys.stderr)
+            return 2
+        print(f"{result.steps} steps, {result.watchdog_events} watchdog events,"
+              f" {result.evaluations_per_step:.2f} evaluations/step -> {result.output}")
+
+    p.set_defaults(func=run)
+
+
 def _add_md_analysis(sub) -> None:
     p = sub.add_parser("md-analysis", help="conserved-quantity stability of MD trajectories"
                        " (slope, max jump per atom; paper's scatter plot)")
@@ -312,7 +359,7 @@ def _add_md_ir(sub) -> None:
 
 COMMANDS = [_add_train, _add_evaluate, _add_demo, _add_relabel, _add_convert_reference, _add_label]
 COMMANDS += [_add_ir, _add_polarizability, _add_response, _add_optimize]
-COMMANDS += [_add_md_analysis, _add_md_ir]
+COMMANDS += [_add_md, _add_md_analysis, _add_md_ir]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,188 @@
+"""Born-Oppenheimer MD (emlpack.md): energy conservation ~dt^2, watchdog, resume, NVT, field.
+
+Water with a small random SchNet plus springs (tests/response/toy.py) at its minimum: a stable
+model whose pairs do not merge, float64, one thread.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from emlpack.io import read_structures
+from emlpack.md import CHECKPOINT, TRAJECTORY, MDWatchdogError, Watchdog, run_md
+from emlpack.optimize import optimize
+from tests.nn.helpers import water_molecule
+from tests.response.toy import spring_model
+
+CONTRACT_KEYS = {"step", "time", "potential_energy", "kinetic_energy", "thermostat_energy",
+                 "conserved_energy", "temperature", "dipole", "relax_evaluations",
+                 "watchdog_events", "velocities"}
+
+
+@pytest.fixture(scope="module")
+def water():
+    torch.set_num_threads(1)
+    s = water_molecule()
+    model = spring_model(s)
+    res = optimize(model, s, fmax=1e-9)
+    assert res.converged, res.reason
+    return model, res.structure
+
+
+def _frames(path):
+    return read_structures(path / TRAJECTORY)
+
+
+def _econs(frames):
+    return np.array([f.info["conserved_energy"] for f in frames])
+
+
+def test_nve_energy_error_shrinks_as_dt_squared(water, tmp_path):
+    model, s = water
+    spread = {}
+    for dt in (0.4, 0.2):
+        out = tmp_path / f"nve{dt}"
+        r = run_md(model, s, int(round(8.0 / dt)), out, dt_fs=dt, temperature_K=300,
+                   ensemble="nve", seed=1, checkpoint_every=100)
+        frames = _frames(out)
+        assert len(frames) == r.steps + 1 and r.watchdog_events == 0
+        assert CONTRACT_KEYS <= set(frames[-1].info)
+        e = _econs(frames)
+        # NVE: no thermostat energy; conserved = kinetic + potential
+        assert all(f.info["thermostat_energy"] == 0.0 for f in frames)
+        np.testing.assert_allclose(
+            e, [f.info["kinetic_energy"] + f.info["potential_energy"] for f in frames])
+        spread[dt] = np.abs(e - e[0]).max()
+        assert np.mean([f.info["temperature"] for f in frames]) > 50
+    ratio = spread[0.4] / spread[0.2]
+    assert 2.8 < ratio < 5.6, (spread, ratio)  # velocity Verlet: error ~ dt^2 -> 4
+
+
+def test_watchdog_catches_merged_start_pairs_and_recovers(water, tmp_path):
+    model, s = water
+    pairs = s.pairs.copy()
+    pairs[1] = pairs[0]  # two pairs on top of each other: relaxation keeps them merged
+    r = run_md(model, s.copy(pairs=pairs), 4, tmp_path, ensemble="nve", temperature_K=100,
+               guess_method="lewis")
+    assert r.watchdog_events == 1
+    event = r.events[0]
+    assert event["step"] == 0 and event["fallback"] == "guess" and event["ok"]
+    assert "merged" in event["reason"]
+    frames = _frames(tmp_path)
+    assert [f.info["watchdog_events"] for f in frames] == [1] * 5
+    for f in frames:  # never continues with broken pairs
+        d = np.linalg.norm(f.pairs[:, None] - f.pairs[None], axis=-1) + 9 * np.eye(len(f.pairs))
+        assert d.min() > 0.2
+    assert "watchdog" in (tmp_path / "md.log").read_text()
+
+
+def test_watchdog_rolls_back_a_broken_step(water, tmp_path, monkeypatch):
+    """A step whose extrapolated pairs are merged is rolled back and redone from the rigidly
+    moved pairs of the last good step; the trajectory equals an undisturbed one."""
+    model, s = water
+    ref = run_md(model, s, 8, tmp_path / "ref", ensemble="nve", temperature_K=300, seed=2)
+    from emlpack.md import BOPairCalculator
+
+    predict = BOPairCalculator.predict
+    calls = {"n": 0}
+
+    def broken(self, cores):
+        calls["n"] += 1
+        x = predict(self, cores)
+        if calls["n"] == 5:
+            x[2] = x[3]
+        return x
+
+    monkeypatch.setattr(BOPairCalculator, "predict", broken)
+    r = run_md(model, s, 8, tmp_path / "hit", ensemble="nve", temperature_K=300, seed=2)
+    assert r.watchdog_events == 1 and r.events[0]["fallback"] == "rigid" and r.events[0]["ok"]
+    a, b = _frames(tmp_path / "ref"), _frames(tmp_path / "hit")
+    # same up to the relaxation tolerance (1e-5 eV/Å pair forces from another start)
+    np.testing.assert_allclose(b[-1].positions, a[-1].positions, atol=1e-6)
+    assert ref.watchdog_events == 0
+
+
+def test_watchdog_stops_with_clear_error_after_writing(water, tmp_path):
+    model, s = water
+    wd = Watchdog()
+
+    def sabotage(step, atoms, calc):
+        if step == 3:
+            wd.max_core_distance = 1e-3  # from now on every pair is "far from all cores"
+
+    with pytest.raises(MDWatchdogError, match=r"step 4: .*from the nearest core"):
+        run_md(model, s, 10, tmp_path, ensemble="nve", temperature_K=300, watchdog=wd,
+               callback=sabotage, guess_method="lewis")
+    frames = _frames(tmp_path)
+    assert [f.info["step"] for f in frames] == [0, 1, 2, 3]
+    assert (tmp_path / CHECKPOINT).exists()
+
+
+def test_resume_continues_the_same_trajectory(water, tmp_path):
+    model, s = water
+    kw = dict(dt_fs=0.5, temperature_K=300, seed=3, checkpoint_every=5, tdamp_fs=20.0)
+    run_md(model, s, 20, tmp_path / "full", **kw)
+    full = _frames(tmp_path / "full")
+    # stopped after 10 steps, then the same command with 20 steps
+    run_md(model, s, 10, tmp_path / "split", **kw)
+    r = run_md(model, s, 20, tmp_path / "split", **kw)
+    assert r.resumed_from == 10
+    # killed at step 13 (checkpoint at 10), with a partial frame appended to the file
+    def kill(step, atoms, calc):
+        if step == 13:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_md(model, s, 20, tmp_path / "killed", callback=kill, **kw)
+    with open(tmp_path / "killed" / TRAJECTORY, "a") as fh:
+        fh.write("7\nProperties=species:S:1:pos:R:3 step=11\nO 0.0 0.")
+    run_md(model, s, 20, tmp_path / "killed", **kw)
+    for name in ("split", "killed"):
+        frames = _frames(tmp_path / name)
+        assert [f.info["step"] for f in frames] == list(range(21))
+        for a, b in zip(full, frames, strict=True):
+            np.testing.assert_allclose(b.positions, a.positions, atol=1e-10, rtol=0)
+            np.testing.assert_allclose(b.pairs, a.pairs, atol=1e-10, rtol=0)
+            np.testing.assert_allclose(b.info["velocities"], a.info["velocities"], atol=1e-10)
+            assert b.info["conserved_energy"] == pytest.approx(a.info["conserved_energy"],
+                                                               abs=1e-10)
+    with pytest.raises(ValueError, match="different run"):
+        run_md(model, s, 20, tmp_path / "full", **{**kw, "seed": 4})
+
+
+def test_nvt_conserved_energy_bounded_and_temperature_near_target(water, tmp_path):
+    model, s = water
+    run_md(model, s, 200, tmp_path, dt_fs=0.5, temperature_K=300, tdamp_fs=10.0, seed=5,
+           checkpoint_every=100, log_every=100)
+    frames = _frames(tmp_path)
+    e = _econs(frames)
+    thermo = np.array([f.info["thermostat_energy"] for f in frames])
+    assert np.ptp(thermo) > 1e-3  # the thermostat does work ...
+    assert np.abs(e - e[0]).max() < 0.1 * np.ptp(thermo)  # ... and the total is conserved
+    temps = np.array([f.info["temperature"] for f in frames[50:]])
+    assert 150 < temps.mean() < 450  # 9 degrees of freedom: loose
+
+
+def test_md_in_a_field(water, tmp_path):
+    model, s = water
+    field = np.array([0.15, -0.1, 0.2])  # V/Å
+    run_md(model, s, 20, tmp_path, ensemble="nve", temperature_K=300, field=field, seed=6)
+    frames = _frames(tmp_path)
+    e = _econs(frames)
+    assert np.abs(e - e[0]).max() < 2e-3
+    for f in frames[::5]:
+        np.testing.assert_allclose(f.field, field)
+        # energy and dipole of the frame are the model's at the stored pairs, field included
+        out = model.evaluate(f)
+        # (the file holds positions to 1e-8 Å)
+        assert f.energy == pytest.approx(out["energy"], abs=1e-7)
+        np.testing.assert_allclose(f.forces, out["forces"], atol=1e-5)
+        np.testing.assert_allclose(f.info["dipole"], f.dipole(), atol=1e-7)
+        # relaxed pairs: the field's net force on the neutral molecule is zero and the pair
+        # forces vanish, so the BO forces on the cores sum to zero
+        assert np.abs(out["pair_forces"]).max() < 2e-5
+        assert np.linalg.norm(f.forces.sum(0)) < 1e-4
+    # the field polarises the molecule: the dipole differs from the zero-field relaxation
+    assert np.linalg.norm(frames[0].info["dipole"] - s.dipole()) > 1e-3
