@@ -229,18 +229,25 @@ def stage_reference(study: Study) -> dict | None:
 
 def _train_store(study: Study) -> Path:
     """A store with the training records (optionally without the FD calculations)."""
-    use_fd = bool(study.cfg.get("training", {}).get("use_reference_calcs", True))
+    t = study.cfg.get("training", {})
+    use_fd = bool(t.get("use_reference_calcs", True))
+    field_forces = bool(t.get("field_set_forces", True))
     path = study.workdir / "train_data.h5"
     tmp = path.with_suffix(".tmp.h5")
     tmp.unlink(missing_ok=True)
     with DatasetStore(study.store_path, "r") as src, DatasetStore(tmp, "a") as dst:
         keep = [s for s in src if use_fd or not s.info["key"].startswith("ref/")]
-        for s in keep:
+        for k, s in enumerate(keep):
             s.info = {k: v for k, v in s.info.items() if isinstance(v, (str, float))}
+            if not field_forces and np.any(s.field):
+                # CP2K 2023.1 double-counts Berry-phase field forces in small cells: train
+                # the field set on energies and electron pairs only
+                keep[k] = s.copy(forces=None)
         dst.append(keep)
         n = len(keep)
     os.replace(tmp, path)
-    study.log(f"train: {n} labeled configurations (FD calculations included: {use_fd})")
+    study.log(f"train: {n} labeled configurations (FD calculations included: {use_fd};"
+              f" field-set core forces used: {field_forces})")
     return path
 
 
