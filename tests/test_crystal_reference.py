@@ -98,3 +98,27 @@ def test_task_layout():
     assert sum(t.stress for t in tasks) == 13
     assert all(not np.any(t.structure.field) for t in tasks if t.stress)
     assert len({t.key for t in tasks}) == 19
+
+
+@pytest.mark.slow  # ~30 s (18 position optimisations): keeps the default suite < 90 s
+def test_fd_relaxed_ion_tensors_with_a_relax_callable(crystal):
+    """Cores relaxed at every perturbation (``relax``) give the relaxed-ion tensors."""
+    model, s = crystal
+    res0 = optimize(model, s, fmax=1e-10)
+    chord = {"hessian": res0.hessian, "hessian_every": 0}
+
+    def relax(x):
+        r = optimize(model, x, fmax=1e-10, **chord)
+        assert r.converged, r.reason
+        return r.structure
+
+    settings = FDSettings(field_step=1e-3, strain_step=1e-4, points=2)
+    fd = compute_reference_tensors(ModelLabeler(model, fmax=1e-10), s, settings, relax=relax)
+    an = crystal_response(model, s)
+    assert fd.relaxed_ions
+    chi = an.dielectric_relaxed - np.eye(3)
+    np.testing.assert_allclose(fd.dielectric - np.eye(3), chi, atol=1e-4 * np.abs(chi).max())
+    c = an.stiffness_voigt
+    np.testing.assert_allclose(fd.stiffness_voigt, c, atol=1e-4 * np.abs(c).max())
+    e = an.piezo_voigt
+    np.testing.assert_allclose(fd.piezo_voigt, e, atol=1e-4 * np.abs(e).max())
