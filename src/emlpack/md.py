@@ -227,7 +227,7 @@ class BOPairCalculator(Calculator):
         structure = Structure(atoms.numbers, cores, x0, field=self.field, charge=self.charge,
                               source="MD")
         n_pre = 0
-        if fallback == "guess" or not self.history:
+        if fallback or not self.history:
             # a fresh start may be far from the minimum: the robust Newton relaxation first
             pre = relax_pairs(self.model, structure, fmax=self.fmax, max_iterations=100,
                               check_curvature=False)[0]
