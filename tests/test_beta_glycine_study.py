@@ -61,10 +61,13 @@ def test_study_runs_end_to_end_and_resumes(tmp_path, fake):
         keys = store.keys()
     assert len(keys) == 19 + 6 + 4 and len(set(keys)) == len(keys)
     assert sum(k.startswith("r1/") for k in keys) == 4
-    # resuming labels nothing twice
+    # resuming labels nothing twice, nor does a second shard (its own store)
     study_mod.run(["label"], cfg, labeler=labeler, log=lines.append)
+    study_mod.run(["label"], cfg, labeler=labeler, log=lines.append, shard=(1, 2))
     with DatasetStore(tmp_path / "run" / "labels.h5") as store:
         assert len(store) == len(keys)
+    with DatasetStore(tmp_path / "run" / "labels.1.h5") as store:
+        assert len(store) == 0
     # the DFT column is the fake labeler's own clamped-ion physics (2-point central
     # differences at the study's steps: O(h^2) nonlinearity of the springs ~0.1 % at this step)
     result = json.loads((tmp_path / "out" / "results.json").read_text())
