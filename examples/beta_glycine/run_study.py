@@ -366,6 +366,7 @@ def stage_emlp(study: Study) -> dict:
     res = optimize(model, s0, cell=True, fmax=float(e.get("fmax", 1e-4)),
                    smax=float(e.get("smax", 1e-6)),
                    max_iterations=int(e.get("max_iterations", 60)),
+                   hessian_every=int(e.get("hessian_every", 1)),
                    log=study.log if e.get("verbose") else None)
     opt = {"converged": res.converged, "iterations": res.iterations, "reason": res.reason,
            "max_force": res.max_force, "max_stress_GPa": res.max_stress * EV_PER_A3_IN_GPA,
