@@ -186,3 +186,17 @@ def test_md_in_a_field(water, tmp_path):
         assert np.linalg.norm(f.forces.sum(0)) < 1e-4
     # the field polarises the molecule: the dipole differs from the zero-field relaxation
     assert np.linalg.norm(frames[0].info["dipole"] - s.dipole()) > 1e-3
+
+
+def test_paper_relaxation_gives_the_same_trajectory(water, tmp_path):
+    """The paper's boxed L-BFGS-B (from the previous pairs) and the warm-started relaxation
+    follow the same Born-Oppenheimer trajectory to within the relaxation tolerance."""
+    model, s = water
+    kw = dict(ensemble="nve", temperature_K=300, seed=7)
+    warm = run_md(model, s, 10, tmp_path / "warm", **kw)
+    paper = run_md(model, s, 10, tmp_path / "paper", relax="paper", **kw)
+    a, b = _frames(tmp_path / "warm"), _frames(tmp_path / "paper")
+    np.testing.assert_allclose(b[-1].positions, a[-1].positions, atol=1e-5)
+    np.testing.assert_allclose(b[-1].pairs, a[-1].pairs, atol=1e-4)
+    assert paper.watchdog_events == warm.watchdog_events == 0
+    assert paper.evaluations_per_step > warm.evaluations_per_step
