@@ -172,6 +172,13 @@ def test_trajectory_file_analysis_plot_and_cli(tmp_path):
         assert r.n_atoms == 3
         assert r.slope == pytest.approx(ref.slope, rel=1e-9)
         assert r.max_jump == pytest.approx(ref.max_jump, rel=1e-9)
+    # an 'emlp md' output directory stands for its trajectory file
+    from emlpack.md import TRAJECTORY
+
+    run_dir = tmp_path / "run_dir"
+    run_dir.mkdir()
+    (run_dir / TRAJECTORY).write_bytes(paths[0].read_bytes())
+    assert analyze_trajectory(run_dir).max_jump == analyze_trajectory(paths[0]).max_jump
     png = tmp_path / "scatter.png"
     results = plot_conserved(paths, png, groups=["a", "a", "b"])
     assert [r.classification for r in results] == ["stable", "transition", "unstable"]
