@@ -82,4 +82,4 @@ def test_study_runs_end_to_end_and_resumes(tmp_path, fake):
     assert result["summary"]["n_fd_calculations"] == 19
     assert np.isfinite(rows["a"]["emlp_clamped"])
     md = (tmp_path / "out" / "results.md").read_text()
-    assert "| C66 |" in md and "Within 10 %" in md
+    assert "| C66 |" in md and "within 10 %" in md
