@@ -129,6 +129,8 @@ def test_resume_continues_the_same_trajectory(water, tmp_path):
     run_md(model, s, 10, tmp_path / "split", **kw)
     r = run_md(model, s, 20, tmp_path / "split", **kw)
     assert r.resumed_from == 10
+    again = run_md(model, s, 20, tmp_path / "split", **kw)  # complete: nothing to do
+    assert again.steps == 20 and again.evaluations_per_step == r.evaluations_per_step
     # killed at step 13 (checkpoint at 10), with a partial frame appended to the file
     def kill(step, atoms, calc):
         if step == 13:
@@ -154,14 +156,14 @@ def test_resume_continues_the_same_trajectory(water, tmp_path):
 
 def test_nvt_conserved_energy_bounded_and_temperature_near_target(water, tmp_path):
     model, s = water
-    run_md(model, s, 200, tmp_path, dt_fs=0.5, temperature_K=300, tdamp_fs=10.0, seed=5,
-           checkpoint_every=100, log_every=100)
+    run_md(model, s, 100, tmp_path, dt_fs=0.5, temperature_K=300, tdamp_fs=10.0, seed=5,
+           checkpoint_every=50, log_every=50)
     frames = _frames(tmp_path)
     e = _econs(frames)
     thermo = np.array([f.info["thermostat_energy"] for f in frames])
     assert np.ptp(thermo) > 1e-3  # the thermostat does work ...
     assert np.abs(e - e[0]).max() < 0.1 * np.ptp(thermo)  # ... and the total is conserved
-    temps = np.array([f.info["temperature"] for f in frames[50:]])
+    temps = np.array([f.info["temperature"] for f in frames[30:]])
     assert 150 < temps.mean() < 450  # 9 degrees of freedom: loose
 
 

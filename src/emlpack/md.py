@@ -229,7 +229,7 @@ class BOPairCalculator(Calculator):
         n_pre = 0
         if fallback or not self.history:
             # a fresh start may be far from the minimum: the robust Newton relaxation first
-            pre = relax_pairs(self.model, structure, fmax=self.fmax, max_iterations=100,
+            pre = relax_pairs(self.model, structure, fmax=self.fmax, max_iterations=50,
                               check_curvature=False)[0]
             n_pre = pre.n_evaluations
             self.n_evaluations += n_pre
@@ -445,7 +445,8 @@ class Watchdog:
 # ------------------------------------------------------------------------------ driver
 @dataclass
 class MDResult:
-    """Summary of a run (counts, eV, K, s)."""
+    """Summary of a run (counts, eV, K, s); per-step figures cover steps 1..``steps`` of the
+    whole run (resumed parts included, the initial relaxation of step 0 excluded)."""
 
     output: str
     steps: int
@@ -565,6 +566,8 @@ class _Run:
         self.step_evals = 0
         self.step_hess = 0
         self.wall = 0.0
+        #: evaluations, Hessians and seconds spent before step 1 (the initial relaxation)
+        self.base = [0, 0, 0.0]
 
     # -------------------------------------------------------------- state
     def snapshot(self) -> dict:
@@ -616,7 +619,7 @@ class _Run:
             "energy": c["results"]["energy"], "diagnostics": _jsonable(c["diagnostics"]),
             "n_evaluations": c["n_evaluations"], "n_hessians": c["n_hessians"],
             "events": self.events, "wall": self.wall,
-            "has_hessian": c["hessian"] is not None,
+            "has_hessian": c["hessian"] is not None, "base": self.base,
         }
         arrays["meta"] = np.array(json.dumps(meta))
         tmp = self.ckpt.with_name(f".{CHECKPOINT}.tmp.npz")
@@ -635,7 +638,7 @@ class _Run:
             diff = sorted(k for k in self.sig if meta["signature"].get(k) != _jsonable(self.sig[k]))
             raise ValueError(
                 f"{self.ckpt}: the checkpoint belongs to a different run (differs in {diff});"
-                " use another output directory or resume=False")
+                " use another output directory or start over (resume=False, emlp md --no-resume)")
         results = {"energy": meta["energy"], "free_energy": meta["energy"],
                    "forces": a["forces"], "dipole": a["dipole"]}
         calc_state = {
@@ -651,6 +654,7 @@ class _Run:
         self.restore(snap)
         self.step, self.frames = meta["step"], meta["frames"]
         self.events, self.wall = meta["events"], meta["wall"]
+        self.base = meta["base"]
         # cut the trajectory back to what the checkpoint covers (drops a partial frame)
         size = meta["trajectory_bytes"]
         if not self.traj.exists() or self.traj.stat().st_size < size:
@@ -791,10 +795,13 @@ class _Run:
             t0 = time.perf_counter()
             self.initial()
             self.wall += time.perf_counter() - t0
+            self.base = [self.calc.n_evaluations, self.calc.n_hessians, self.wall]
             self.buffer.append(self.frame())
             self.flush()
-        evals0, hess0, wall0, step0 = (self.calc.n_evaluations, self.calc.n_hessians,
-                                       self.wall, self.step)
+        if self.step >= steps:
+            self.log.info("the run is complete (%d steps); nothing to do", self.step)
+        evals0, hess0, wall0 = self.base
+        step0 = 0
         record = self.sig["record_every"]
         try:
             while self.step < steps:
@@ -867,12 +874,12 @@ def _file_logger(path: Path) -> logging.Logger:
 
 def run_md_file(args) -> MDResult:
     """``emlp md``: read the start frame, pick the field, run :func:`run_md` (see the CLI)."""
-    from emlpack.io import read_structures
+    from emlpack.response_tasks import read_input
     from emlpack.units import FIELD_AU_IN_V_PER_A
 
     torch.set_num_threads(max(1, int(args.threads)))
-    frames = read_structures(args.start, index=args.frame)
-    structure = frames[0] if isinstance(frames, list) else frames
+    # a start without pairs gets guess_pairs (relaxed at step 0)
+    structure = read_input(args.start, str(args.frame))
     field_v = None
     if args.field is not None:
         field_v = np.asarray(args.field, float)
