@@ -162,7 +162,7 @@ def test_trajectory_file_analysis_plot_and_cli(tmp_path):
 
     paths = []
     for k, jump in enumerate((1e-4, 3e-3, 0.05)):
-        t, e, steps = _series(n_frames=60, slope=(k + 1) * 1e-6, jump=jump, jump_at=40,
+        t, e, steps = _series(n_frames=30, slope=(k + 1) * 1e-6, jump=jump, jump_at=20,
                               n_atoms=3)
         path = tmp_path / f"run{k}.xyz"
         write_structures(path, _water_frames(t, e, steps))
@@ -391,9 +391,10 @@ def test_md_dipole_ir_matches_harmonic_ir(water_minimum):
     agree with the harmonic frequencies within the resolution, the area with the intensities,
     and the energy is conserved."""
     model, s, harmonic, h_pp_inv = water_minimum
-    temperature, dt, n_steps = 20.0, 0.5, 320
+    temperature, dt, n_steps = 20.0, 0.5, 256
     v0 = _mode_velocities(harmonic, atomic_masses[s.numbers], temperature, seed=1)
-    dipoles, energies, evaluations = _bo_dynamics(model, s, h_pp_inv, v0, dt, n_steps)
+    dipoles, energies, evaluations = _bo_dynamics(model, s, h_pp_inv, v0, dt, n_steps,
+                                                  fmax=1e-5)
     kt = BOLTZMANN_EV_K * temperature
     n_modes = len(harmonic.frequencies)
     # velocity Verlet at w dt < 0.5: energy fluctuations a few % of the mode energies
