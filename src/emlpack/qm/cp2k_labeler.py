@@ -30,6 +30,7 @@ import signal
 import subprocess
 import tempfile
 import time
+import weakref
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -81,6 +82,10 @@ class CP2KSettings:
         localize_method: ``&LOCALIZE METHOD`` (CRAZY or JACOBI); eps_localization its tolerance,
             max_localization_iter its iteration limit (not converged = failure).
         wannier: compute Wannier centres (False: energy/forces/stress only, faster).
+        reuse_wavefunction: start each SCF from the last converged wavefunction of the same
+            composition (same labeler; in :func:`label_task` the same worker process) instead of
+            the atomic guess: fewer SCF steps for similar configurations, same result within
+            the SCF tolerance.
         n_processes: MPI processes; omp_threads: OMP_NUM_THREADS per process.
         timeout_s: wall-time limit of one CP2K run (s), None = unlimited.
         cp2k: CP2K executable; mpirun: MPI launcher (None: run CP2K directly).
@@ -101,6 +106,7 @@ class CP2KSettings:
     eps_localization: float = 1e-8
     max_localization_iter: int = 10000
     wannier: bool = True
+    reuse_wavefunction: bool = False
     n_processes: int = 2
     omp_threads: int = 1
     timeout_s: float | None = None
@@ -177,8 +183,12 @@ def _check_potentials(numbers: np.ndarray, settings: CP2KSettings, data_dir: Pat
 
 
 def build_input(structure: Structure, settings: CP2KSettings, stress: bool,
-                project: str = "emlp", data_dir: Path | None = None) -> str:
-    """The CP2K input text for ``structure`` (positions and cell in Å, field in V/Å)."""
+                project: str = "emlp", data_dir: Path | None = None,
+                guess: Path | None = None) -> str:
+    """The CP2K input text for ``structure`` (positions and cell in Å, field in V/Å).
+
+    ``guess``: a CP2K ``.wfn`` file to start the SCF from (else the atomic guess).
+    """
     s = settings
     data_dir = data_dir or find_data_dir(s.data_dir)
     potentials = _check_potentials(structure.numbers, s, data_dir)
@@ -231,6 +241,9 @@ def build_input(structure: Structure, settings: CP2KSettings, stress: bool,
     &END KIND""" for sym, pot in potentials.items()
     )
     charge = int(round(structure.charge))
+    scf_guess, restart = "SCF_GUESS ATOMIC", ""
+    if guess is not None:
+        scf_guess, restart = "SCF_GUESS RESTART", f"\n    WFN_RESTART_FILE_NAME {guess}"
     return f"""&GLOBAL
   PROJECT {project}
   RUN_TYPE ENERGY_FORCE
@@ -242,7 +255,7 @@ def build_input(structure: Structure, settings: CP2KSettings, stress: bool,
   &DFT
     BASIS_SET_FILE_NAME {data_dir / 'BASIS_MOLOPT'}
     POTENTIAL_FILE_NAME {data_dir / 'GTH_POTENTIALS'}
-    CHARGE {charge}
+    CHARGE {charge}{restart}
     &MGRID
       CUTOFF {s.cutoff_ry:g}
       REL_CUTOFF {s.rel_cutoff_ry:g}
@@ -253,7 +266,7 @@ def build_input(structure: Structure, settings: CP2KSettings, stress: bool,
     &SCF
       EPS_SCF {s.eps_scf:g}
       MAX_SCF {int(s.max_scf)}
-      SCF_GUESS ATOMIC
+      {scf_guess}
       &OT
         MINIMIZER DIIS
         PRECONDITIONER FULL_SINGLE_INVERSE
@@ -263,7 +276,8 @@ def build_input(structure: Structure, settings: CP2KSettings, stress: bool,
         MAX_SCF {int(s.outer_max_scf)}
       &END OUTER_SCF
       &PRINT
-        &RESTART OFF
+        &RESTART {'ON' if s.reuse_wavefunction else 'OFF'}
+          BACKUP_COPIES 0
         &END RESTART
       &END PRINT
     &END SCF
@@ -316,8 +330,9 @@ def parse_output(text: str, n_atoms: int, stress: bool) -> dict:
     if not m:
         raise CP2KError("no total energy in the CP2K output")
     out["energy"] = float(m[-1])
+    outer = re.findall(r"outer SCF loop converged in\s+\d+ iterations or\s+(\d+) steps", text)
     steps = re.findall(r"SCF run converged in\s+(\d+) steps", text)
-    out["scf_steps"] = sum(int(x) for x in steps)
+    out["scf_steps"] = int(outer[-1]) if outer else sum(int(x) for x in steps)
     block = text[text.rfind("ATOMIC FORCES in [a.u.]"):]
     if not block.startswith("ATOMIC FORCES"):
         raise CP2KError("no ATOMIC FORCES block in the CP2K output")
@@ -401,6 +416,8 @@ class CP2KLabeler:
         self.workdir = Path(workdir) if workdir is not None else None
         self.keep_files = keep_files
         self.last_run_dir: Path | None = None
+        self._wfn: dict[bytes, Path] = {}
+        self._wfn_dir: Path | None = None
 
     def __call__(self, structure: Structure, *, stress: bool = False) -> Structure:
         """A new, labeled copy of ``structure``; raises :class:`LabelingError` on failure."""
@@ -414,7 +431,9 @@ class CP2KLabeler:
                 " periodic E-field not implemented); label field and stress sets separately"
             )
         data_dir = find_data_dir(s.data_dir)
-        text = build_input(structure, s, stress, data_dir=data_dir)
+        composition = np.append(structure.numbers, structure.charge).tobytes()
+        guess = self._wfn.get(composition) if s.reuse_wavefunction else None
+        text = build_input(structure, s, stress, data_dir=data_dir, guess=guess)
         n_val = core_charges(structure.numbers).sum() - structure.charge
         if self.workdir is not None:
             self.workdir.mkdir(parents=True, exist_ok=True)
@@ -427,7 +446,10 @@ class CP2KLabeler:
             try:
                 res = parse_output(output, structure.n_cores, stress)
             except CP2KError as exc:
+                self._wfn.pop(composition, None)  # next time from the atomic guess
                 raise CP2KError(f"{where}: {exc}; CP2K output tail:\n{_tail(output)}") from None
+            if s.reuse_wavefunction:
+                self._keep_wavefunction(run_dir / "emlp-RESTART.wfn", composition)
             pairs = np.zeros((0, 3))
             if s.wannier:
                 wfile = run_dir / "emlp_wannier.xyz"
@@ -462,6 +484,17 @@ class CP2KLabeler:
             pair_forces=np.zeros((len(pairs) if s.wannier else structure.n_pairs, 3)),
             stress=stress_ev, info=info, source=structure.source,
         )
+
+    def _keep_wavefunction(self, wfn: Path, composition: bytes) -> None:
+        if not wfn.exists():
+            return
+        if self._wfn_dir is None:
+            self._wfn_dir = Path(tempfile.mkdtemp(prefix="cp2k-wfn-", dir=self.workdir))
+            weakref.finalize(self, shutil.rmtree, str(self._wfn_dir), True)
+        target = self._wfn.get(composition) or self._wfn_dir / f"{len(self._wfn)}.wfn"
+        shutil.copyfile(wfn, target.with_suffix(".tmp"))
+        os.replace(target.with_suffix(".tmp"), target)
+        self._wfn[composition] = target
 
     def command(self) -> list[str]:
         s = self.settings
@@ -506,6 +539,20 @@ def _read(path: Path) -> str:
 
 
 # ---------------------------------------------------------------------------------- tasks
+#: labelers of this process, by settings and workdir (wavefunction reuse across tasks)
+_LABELERS: dict[tuple, CP2KLabeler] = {}
+
+
+def _labeler_for(settings: CP2KSettings | None, workdir) -> CP2KLabeler:
+    settings = settings or CP2KSettings()
+    if not settings.reuse_wavefunction:
+        return CP2KLabeler(settings, workdir=workdir)
+    key = (repr(settings), str(workdir))
+    if key not in _LABELERS:
+        _LABELERS[key] = CP2KLabeler(settings, workdir=workdir)
+    return _LABELERS[key]
+
+
 def label_task(structure: Structure, settings: CP2KSettings | None, stress: bool, key: str,
                workdir: str | Path | None = None) -> Structure | dict:
     """Label one structure (e.g. on a Dask worker): the labeled structure, or a failure dict.
@@ -519,7 +566,7 @@ def label_task(structure: Structure, settings: CP2KSettings | None, stress: bool
     if structure.source == "<memory>":
         structure = structure.copy(source=key)  # errors name the key
     try:
-        out = CP2KLabeler(settings, workdir=workdir)(structure, stress=stress)
+        out = _labeler_for(settings, workdir)(structure, stress=stress)
     except LabelingError as exc:
         return {"key": key, "molecule_id": molecule_id, "kind": kind, "reason": str(exc)}
     except Exception as exc:  # noqa: BLE001 - anything else is recorded too
@@ -606,11 +653,11 @@ def field_force_check(structure: Structure, settings: CP2KSettings, field_v_per_
     energy+force runs (Wannier localization off). Returns one dict per component with
     ``induced`` and ``induced_fd`` (eV/Å) and their difference ``error``, the forces at the
     field (``force``, ``force_fd``) and at zero field (``force0``, ``force0_fd``), and the two
-    energies (``energy0``, ``energy``; eV).
+    energies (``energy0``, ``energy``; eV). The SCF restarts from the previous wavefunction.
     """
     from dataclasses import replace
 
-    lab = CP2KLabeler(replace(settings, wannier=False), workdir=workdir)
+    lab = CP2KLabeler(replace(settings, wannier=False, reuse_wavefunction=True), workdir=workdir)
     fields = (np.zeros(3), np.asarray(field_v_per_a, dtype=float))
     base = [lab(structure.copy(field=f)) for f in fields]
     out = []
