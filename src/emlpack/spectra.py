@@ -21,8 +21,14 @@ IR spectra from MD (the dipole time series ``mu(t_i)``, ``t_i = i dt``, ``n`` fr
    ``L = n - 1``) and zero padding (``padding`` x 2L points), then the cosine transform
    ``S(f) = dt [C_0 + 2 sum_k w_k C_k cos(2 pi f k dt)]``, divided by the transfer function of
    the difference, ``sinc^2(f dt)`` (``sin(pi f dt)/(pi f dt)``), to give the spectrum of the
-   derivative; ``sum`` of ``S`` over all frequencies is ``C_0 = <|dmu/dt|^2>`` (Parseval), so
-   the total area is exact; wavenumbers ``nu = f / c``; nominal resolution ``1/(c n dt)``;
+   derivative; before that division the integral of ``S`` over all frequencies is exactly
+   ``C_0 = <|v|^2>`` (Parseval; ``w_0 = 1``); wavenumbers ``nu = f / c``; nominal resolution
+   ``1/(c n dt)``;
+3. absorbance in km/mol per cm^-1, normalised so that for a classical harmonic molecule in
+   equilibrium at ``T`` (each mode's mean kinetic energy kT/2) the area of each line is the
+   harmonic intensity of :func:`ir_from_hessian`:
+   ``A(nu) = N_A/(12 eps0 c^2) (2 c S(f)) / (k T) x Q(nu)/Q_harmonic(nu)``, since
+   ``sum_k |dmu/dQ_k|^2 = <|dmu/dt|^2>/kT`` there;
 4. the quantum correction factor ``Q`` turns the classical line shape into the quantum one
    (``x = h c nu / kT``; Ramirez, Lopez-Ciudad, Kumar, Marx, J. Chem. Phys. 121, 3973 (2004);
    the absorption is ``alpha ~ nu (1 - e^-x) Q(nu) I_classical(nu)``):
