@@ -465,6 +465,10 @@ def stage_table(study: Study, out_dir: Path | None = None) -> dict:
                                                       "max_force", "max_stress_GPa")},
         "training": _training_summary(study),
     }
+    train_data = study.workdir / "train_data.h5"
+    if train_data.exists():
+        with DatasetStore(train_data, "r") as store:
+            summary["n_training_configurations"] = len(store)
     result = {"summary": summary, "rows": rows, "dft": dft, "emlp": emlp,
               "units": {"lattice": "Å, degrees, Å^3", "C": "GPa", "e": "C/m^2", "d": "pm/V"}}
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -511,7 +515,8 @@ def markdown(result: dict, notes: str = "") -> str:
         f"- DFT level: `{s['labeler_level']}`",
         f"- labeled configurations: {s['n_configurations']} ({s['n_fd_calculations']}"
         f" finite-difference calculations, {s['n_field_set']} field-set and"
-        f" {s['n_stress_set']} stress-set samples; {s['n_failures']} failures)",
+        f" {s['n_stress_set']} stress-set samples; {s['n_failures']} failures);"
+        f" {s.get('n_training_configurations', '–')} of them used for training",
         f"- wall time per point: {_fmt(s['wall_time_per_point_s'], 't')} s;"
         f" total DFT time {_fmt(s['total_dft_time_h'], 't')} h",
         f"- finite differences: {s['fd_settings']}",
