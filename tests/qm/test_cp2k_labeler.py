@@ -185,6 +185,10 @@ def test_crash_and_unconverged_localization_are_clear_errors(cp2k, tmp_path):
     broken = CP2KSettings(**{**FAST.to_dict(), "cp2k": str(script), "mpirun": None})
     with pytest.raises(CP2KError, match=r"(?s)exit code 3.*something broke"):
         CP2KLabeler(broken)(water())
+    script.write_text("#!/bin/sh\nsleep 60\n")
+    slow = CP2KSettings(**{**broken.to_dict(), "timeout_s": 0.5})
+    with pytest.raises(CP2KError, match="timed out after 0.5 s"):
+        CP2KLabeler(slow)(water())
     text = "Crazy Wannier localization not converged after      3\n"
     with pytest.raises(CP2KError, match="localization not converged after 3"):
         parse_output(text + "ENERGY| Total FORCE_EVAL ( QS ) energy [a.u.]: -1.0\n", 3, False)
