@@ -359,8 +359,11 @@ def stage_emlp(study: Study) -> dict:
         out["input_geometry"] = {"error": f"pair relaxation failed: {r.reason}"}
     else:
         s_in = s0.copy(pairs=r.pairs)
-        out["input_geometry"] = {"lattice": lattice(s_in.cell),
-                                 **crystal_response(model, s_in).as_dict()}
+        try:
+            out["input_geometry"] = {"lattice": lattice(s_in.cell),
+                                     **crystal_response(model, s_in).as_dict()}
+        except (np.linalg.LinAlgError, ValueError) as exc:
+            out["input_geometry"] = {"error": f"response failed: {exc}"}
         s0 = s_in
     t0 = time.perf_counter()
     res = optimize(model, s0, cell=True, fmax=float(e.get("fmax", 1e-4)),
@@ -374,7 +377,7 @@ def stage_emlp(study: Study) -> dict:
            "lattice": lattice(res.structure.cell)}
     try:
         opt.update(crystal_response(model, res.structure).as_dict())
-    except np.linalg.LinAlgError as exc:
+    except (np.linalg.LinAlgError, ValueError) as exc:
         opt["error"] = f"response failed: {exc}"
     out["optimized"] = opt
     _write_json(study.workdir / "emlp.json", out)
