@@ -282,9 +282,9 @@ def _add_md(sub) -> None:
                      help="homogeneous field, V/Å (default: the start file's)")
     fld.add_argument("--field-au", type=float, nargs=3, metavar=("EX", "EY", "EZ"),
                      help="homogeneous field, atomic units")
-    p.add_argument("--relax", default="warm", choices=["warm", "paper"],
-                   help="pair relaxation: warm-started quasi-Newton or the paper's boxed"
-                   " L-BFGS-B")
+    p.add_argument("--relax", default="warm", choices=["warm", "corrected", "paper"],
+                   help="pair relaxation: warm-started quasi-Newton, the same with a final"
+                   " Newton correction (corrected) or the paper's boxed L-BFGS-B")
     p.add_argument("--fmax", type=float, default=1e-5, help="pair-force tolerance, eV/Å")
     p.add_argument("--tdamp", type=float, default=100.0, help="thermostat time constant, fs")
     p.add_argument("--record-every", type=int, default=1, help="frame every N steps (1)")
