@@ -9,6 +9,8 @@ failures recorded in the store. Skipped without CP2K on a user's machine, failin
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -192,3 +194,9 @@ def test_crash_and_unconverged_localization_are_clear_errors(cp2k, tmp_path):
     text = "Crazy Wannier localization not converged after      3\n"
     with pytest.raises(CP2KError, match="localization not converged after 3"):
         parse_output(text + "ENERGY| Total FORCE_EVAL ( QS ) energy [a.u.]: -1.0\n", 3, False)
+
+
+def test_cp2k_labeler_does_not_import_torch():
+    code = ("import sys, emlpack.qm.cp2k_labeler\n"
+            "assert 'torch' not in sys.modules, 'torch was imported'\n")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
