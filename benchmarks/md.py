@@ -117,10 +117,15 @@ def main() -> int:
             every = args.curvature_every if mode == "warm" else 0
             t0 = time.perf_counter()
             out = Path(tmp) / f"{mode}_{fmax:g}"
+            cpu: dict[int, float] = {}
+
+            def clock(step, atoms, calc, cpu=cpu):
+                cpu[step] = time.process_time()
+
             r = run_md(args.model, start, args.steps, out, dt_fs=args.dt,
                        temperature_K=args.temperature, relax=mode, seed=0, fmax=fmax,
                        watchdog=Watchdog(curvature_every=every), checkpoint_every=50,
-                       log_every=max(args.steps // 5, 1))
+                       log_every=max(args.steps // 5, 1), callback=clock)
             frames = read_structures(out / TRAJECTORY)
             econs = np.array([f.info["conserved_energy"] for f in frames])
             evals = np.array([f.info["relax_evaluations"] for f in frames[1:]])
@@ -132,6 +137,8 @@ def main() -> int:
                 "evaluations_per_step_max": int(evals.max()),
                 "hessians_per_step": r.hessians_per_step,
                 "seconds_per_step": r.seconds_per_step,
+                # CPU time of steps 2..N (less sensitive to the machine's load than wall time)
+                "cpu_seconds_per_step": (cpu[args.steps] - cpu[1]) / (args.steps - 1),
                 "watchdog_events": r.watchdog_events,
                 "conserved_energy_range_eV": float(np.ptp(econs)),
                 "conserved_energy_max_jump_eV": float(np.abs(np.diff(econs)).max()),
@@ -166,12 +173,15 @@ def main() -> int:
         if w is None or p is None:
             continue
         ratio_t = p["seconds_per_step"] / w["seconds_per_step"]
+        ratio_cpu = p["cpu_seconds_per_step"] / w["cpu_seconds_per_step"]
         summary[mode] = {
             "evaluations_ratio_paper_over_mode": p["evaluations_per_step"]
             / w["evaluations_per_step"],
             "time_ratio_paper_over_mode": ratio_t,
+            "cpu_time_ratio_paper_over_mode": ratio_cpu,
             "goal_evaluations_le_3": w["evaluations_per_step"] <= 3.0,
             "goal_time_ratio_ge_5": ratio_t >= 5.0,
+            "goal_cpu_time_ratio_ge_5": ratio_cpu >= 5.0,
         }
     print(summary)
     write_json(args.json, {
