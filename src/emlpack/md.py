@@ -18,7 +18,7 @@ constant 100 fs as yaff's defaults, or ``VelocityVerlet`` for NVE) on a
   when (largest relative model error measured in this and the last step) x (largest pair-force
   component) < ``fmax``, i.e. when the pairs after one more model Newton step ``s = -H^-1 g``
   would be converged; the result is then pairs + s, energy + g.s + s.H.s/2 and core gradient
-  g_c + C s. About 3.6 evaluations per step (hexane); per-step core forces as accurate as
+  g_c + C s. About 3.5 evaluations per step (hexane); per-step core forces as accurate as
   ``"warm"`` at the same ``fmax`` (benchmarks/md.py measures it against tightly relaxed pairs).
 * ``relax="paper"``: the reference code's scheme, SciPy L-BFGS-B from the previous pairs with
   every pair coordinate boxed to ±3x the largest core displacement since the last step
