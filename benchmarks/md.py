@@ -114,7 +114,7 @@ def main() -> int:
     ref = None
     with tempfile.TemporaryDirectory() as tmp:
         for i, (mode, fmax) in enumerate(runs):
-            every = args.curvature_every if mode == "warm" else 0
+            every = args.curvature_every if mode in ("warm", "corrected") else 0
             t0 = time.perf_counter()
             out = Path(tmp) / f"{mode}_{fmax:g}"
             cpu: dict[int, float] = {}
