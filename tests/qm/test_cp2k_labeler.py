@@ -201,3 +201,40 @@ def test_cp2k_labeler_does_not_import_torch():
     code = ("import sys, emlpack.qm.cp2k_labeler\n"
             "assert 'torch' not in sys.modules, 'torch was imported'\n")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_killed_labeler_leaves_no_cp2k_running(cp2k, tmp_path):
+    """kill -9 of the labeling process also ends its CP2K (a stand-in executable that sleeps)."""
+    fake = tmp_path / "fake_cp2k.sh"
+    fake.write_text("#!/bin/sh\necho $$ > ../fake.pid\nexec sleep 60\n")
+    fake.chmod(0o755)
+    script = (
+        "import numpy as np\n"
+        "from emlpack.qm.cp2k_labeler import CP2KLabeler, CP2KSettings\n"
+        "from emlpack.structure import Structure\n"
+        "s = Structure(numbers=[1, 1], positions=[[0, 0, 0], [0.74, 0, 0]],"
+        " pairs=np.zeros((1, 3)), cell=np.eye(3) * 5, pbc=True)\n"
+        f"CP2KLabeler(CP2KSettings(cp2k={str(fake)!r}, mpirun=None),"
+        f" workdir={str(tmp_path)!r}, keep_files=True)(s)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", script])
+    pid_files = []
+    for _ in range(300):
+        pid_files = list(tmp_path.glob("*/fake.pid")) + list(tmp_path.glob("fake.pid"))
+        if pid_files and pid_files[0].read_text().strip():
+            break
+        if proc.poll() is not None:
+            pytest.fail(f"the labeling process ended early (exit code {proc.returncode})")
+        __import__("time").sleep(0.1)
+    assert pid_files, "the stand-in CP2K never started"
+    child = int(pid_files[0].read_text())
+    proc.kill()
+    proc.wait()
+    for _ in range(100):
+        try:
+            os.kill(child, 0)
+        except ProcessLookupError:
+            return
+        __import__("time").sleep(0.1)
+    os.kill(child, 9)
+    pytest.fail("CP2K kept running after its labeling process was killed")

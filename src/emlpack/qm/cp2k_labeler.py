@@ -512,19 +512,19 @@ class CP2KLabeler:
         env = dict(os.environ, OMP_NUM_THREADS=str(int(s.omp_threads)))
         with open(run_dir / "stdout.txt", "w") as out:
             proc = subprocess.Popen(self.command(), cwd=run_dir, env=env, stdout=out,
-                                    stderr=subprocess.STDOUT, start_new_session=True)
+                                    stderr=subprocess.STDOUT, start_new_session=True,
+                                    preexec_fn=_terminate_with_parent)
             try:
                 rc = proc.wait(timeout=s.timeout_s)
             except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGTERM)
-                try:
-                    proc.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    os.killpg(proc.pid, signal.SIGKILL)
-                    proc.wait()
+                _stop_group(proc)
                 output = _read(run_dir / "emlp.out")
                 raise CP2KError(f"{where}: CP2K timed out after {s.timeout_s} s; output tail:\n"
                                 f"{_tail(output)}") from None
+            except BaseException:
+                # interrupted (Ctrl-C, SystemExit, a Dask cancellation): never leave CP2K running
+                _stop_group(proc)
+                raise
         output = _read(run_dir / "emlp.out")
         if rc != 0 or "PROGRAM ENDED AT" not in output:
             raise CP2KError(
@@ -532,6 +532,31 @@ class CP2KLabeler:
                 f"launcher output tail:\n{_tail(_read(run_dir / 'stdout.txt'), 15)}"
             )
         return output
+
+
+def _stop_group(proc: subprocess.Popen) -> None:
+    """Terminate CP2K's process group (mpirun and its ranks), then kill it if it lingers."""
+    try:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    except ProcessLookupError:
+        pass
+
+
+def _terminate_with_parent() -> None:
+    """In the child before exec: ask Linux to send SIGTERM when the labeling process dies
+    (even by SIGKILL), so a killed job leaves no orphaned CP2K behind. No-op elsewhere."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
 
 
 def _read(path: Path) -> str:
