@@ -43,7 +43,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from emlpack.response import VOIGT, piezo_from_voigt, voigt_piezo, voigt_stiffness
+from emlpack.response import (
+    VOIGT,
+    piezo_from_voigt,
+    strain_constants_voigt,
+    voigt_piezo,
+    voigt_stiffness,
+)
 from emlpack.structure import PAIR_CHARGE, Structure
 from emlpack.units import (
     A_PER_V_IN_PM_PER_V,
@@ -233,12 +239,6 @@ class ReferenceTensors:
             "stress0_GPa": (self.stress0 * EV_PER_A3_IN_GPA).tolist(),
             **self.notes,
         }
-
-
-def strain_constants_voigt(e_voigt: np.ndarray, c_voigt: np.ndarray) -> np.ndarray:
-    """``d = e : C^-1`` in Voigt form (engineering shear), as
-    :attr:`emlpack.response.CrystalResponse.strain_constants_voigt`."""
-    return np.asarray(e_voigt) @ np.linalg.inv(c_voigt)
 
 
 def reference_tensors(tasks: list[FDTask], labeled: dict[str, Structure],

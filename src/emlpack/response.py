@@ -275,6 +275,12 @@ def voigt_piezo(e: np.ndarray) -> np.ndarray:
     return np.array([[0.5 * (e[i, j, k] + e[i, k, j]) for (j, k) in VOIGT] for i in range(3)])
 
 
+def strain_constants_voigt(e_voigt: np.ndarray, c_voigt: np.ndarray) -> np.ndarray:
+    """Piezoelectric strain constants ``d = e : C^-1`` in Voigt form (engineering shear):
+    e_iJ (e/Å²) and C_IJ (eV/Å³) give d_iJ in Å/V."""
+    return np.asarray(e_voigt) @ np.linalg.inv(c_voigt)
+
+
 def piezo_from_voigt(e_voigt: np.ndarray, strain_like: bool = False) -> np.ndarray:
     """3x3x3 tensor from a 3x6 Voigt matrix; ``strain_like`` halves the shear components
     (for ``d``, whose Voigt shears carry the engineering factor 2)."""
@@ -335,7 +341,7 @@ class CrystalResponse:
     @property
     def strain_constants_voigt(self) -> np.ndarray:
         """d_iJ = e_iK (C^-1)_KJ (Å/V), engineering shear (factor 2 on J = 4, 5, 6)."""
-        return self.piezo_voigt @ np.linalg.inv(self.stiffness_voigt)
+        return strain_constants_voigt(self.piezo_voigt, self.stiffness_voigt)
 
     @property
     def strain_constants(self) -> np.ndarray:
