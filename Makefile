@@ -10,7 +10,7 @@ $(VENV)/.installed: pyproject.toml Makefile
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PIP) install -q --upgrade pip
 	$(PIP) install -q torch==2.13.0
-	$(PIP) install -q -e '.[qm,dev]'
+	$(PIP) install -q -e '.[qm,dev,periodic]'
 	touch $@
 
 install: $(VENV)/.installed

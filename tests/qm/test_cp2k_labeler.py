@@ -238,3 +238,15 @@ def test_killed_labeler_leaves_no_cp2k_running(cp2k, tmp_path):
         __import__("time").sleep(0.1)
     os.kill(child, 9)
     pytest.fail("CP2K kept running after its labeling process was killed")
+
+
+def test_wavefunction_reuse_with_relative_workdir(cp2k, tmp_path, monkeypatch):
+    """The restart file is found from CP2K's run directory when the workdir is relative (it was
+    silently ignored before: CP2K warned and started from the atomic guess)."""
+    monkeypatch.chdir(tmp_path)
+    lab = CP2KLabeler(CP2KSettings(**{**FAST.to_dict(), "reuse_wavefunction": True}),
+                      workdir="scratch", keep_files=True)
+    first = lab(water())
+    second = lab(water(positions=water().positions + 0.01))
+    assert "User requested to restart" not in (lab.last_run_dir / "emlp.out").read_text()
+    assert second.info["scf_steps"] < first.info["scf_steps"] / 2, (first.info, second.info)

@@ -11,7 +11,7 @@ def test_qm_and_store_do_not_import_torch():
         "import sys\n"
         "import emlpack.qm.labeling, emlpack.qm.relabel, emlpack.qm.recipe\n"
         "import emlpack.qm.pyscf_labeler, emlpack.qm.sampling, emlpack.data.store\n"
-        "import emlpack.qm.crystal_sampling\n"
+        "import emlpack.qm.crystal_sampling, emlpack.qm.crystal_optimize\n"
         "assert 'torch' not in sys.modules, 'torch was imported'\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)

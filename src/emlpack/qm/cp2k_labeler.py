@@ -413,7 +413,8 @@ class CP2KLabeler:
     def __init__(self, settings: CP2KSettings | None = None,
                  workdir: str | Path | None = None, keep_files: bool = False) -> None:
         self.settings = settings or CP2KSettings()
-        self.workdir = Path(workdir) if workdir is not None else None
+        # absolute: CP2K runs inside its own run directory (restart file paths)
+        self.workdir = Path(workdir).resolve() if workdir is not None else None
         self.keep_files = keep_files
         self.last_run_dir: Path | None = None
         self._wfn: dict[bytes, Path] = {}
