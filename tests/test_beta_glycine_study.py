@@ -1,6 +1,7 @@
 """examples/beta_glycine/run_study.py end to end with a fast fake labeler (an eMLP with
-springs on a two-water crystal), so that the script cannot rot: labeling (resumable), FD
-reference tensors, training, a model-Hessian round, BO cell optimisation, the table."""
+springs on a two-water crystal), so that the script cannot rot: the labeler's crystal
+optimisation, labeling (resumable), FD reference tensors at its optimum, training, a
+model-Hessian round, BO cell optimisation, the table."""
 
 from __future__ import annotations
 
@@ -52,14 +53,25 @@ def test_study_runs_end_to_end_and_resumes(tmp_path, fake):
         "training.overrides=['model.n_features=8', 'model.n_filters=8', 'model.n_rbf=8',"
         " 'training.max_epochs=2', 'training.batch_size=8', 'model.elements=[1, 8]']",
         "emlp.max_iterations=3", "emlp.fmax=1e-3", "emlp.smax=1e-4",
+        "optimization.fmax=0.02", "optimization.symprec=null",
     ])
     labeler = ModelLabeler(model, fmax=1e-8)
     lines = []
-    study_mod.run(["label", "reference", "train", "sample", "label", "train", "emlp",
-                   "table"], cfg, labeler=labeler, log=lines.append)
+    with pytest.raises(SystemExit, match="optimize stage"):
+        study_mod.run(["label"], cfg, labeler=labeler, log=lines.append)
+    study_mod.run(["optimize", "label", "reference", "train", "sample", "label", "train",
+                   "emlp", "table"], cfg, labeler=labeler, log=lines.append)
+    opt = json.loads((tmp_path / "run" / "optimization.json").read_text())
+    assert opt["converged"] and opt["max_force"] < 0.02
     with DatasetStore(tmp_path / "run" / "labels.h5") as store:
         keys = store.keys()
-    assert len(keys) == 19 + 6 + 4 and len(set(keys)) == len(keys)
+    n_opt = opt["steps"]
+    assert sum(k.startswith("opt/") for k in keys) == n_opt
+    assert sum(k.startswith("ref-opt/") for k in keys) == 19
+    assert len(keys) == n_opt + 19 + 6 + 4 and len(set(keys)) == len(keys)
+    # a second optimize replays the stored steps: nothing new
+    study_mod.run(["optimize"], cfg, labeler=labeler, log=lines.append)
+    assert json.loads((tmp_path / "run" / "optimization.json").read_text())["calculations"] == 0
     assert sum(k.startswith("r1/") for k in keys) == 4
     # resuming labels nothing twice, nor does a second shard (its own store)
     study_mod.run(["label"], cfg, labeler=labeler, log=lines.append)
@@ -72,7 +84,10 @@ def test_study_runs_end_to_end_and_resumes(tmp_path, fake):
     # differences at the study's steps: O(h^2) nonlinearity of the springs ~0.1 % at this step)
     result = json.loads((tmp_path / "out" / "results.json").read_text())
     rows = {r["quantity"]: r for r in result["rows"]}
-    exact = crystal_response(model, s)
+    from emlpack.io.extxyz import read_structures
+
+    optimum = read_structures(tmp_path / "run" / "optimized.xyz")[0]
+    exact = crystal_response(model, optimum)
     for i in range(3):
         chi = exact.dielectric_clamped[i, i] - 1.0
         assert rows[f"eps{i + 1}{i + 1}"]["dft"] - 1.0 == pytest.approx(chi, rel=2e-3)
@@ -80,6 +95,7 @@ def test_study_runs_end_to_end_and_resumes(tmp_path, fake):
     assert rows["C11"]["dft"] == pytest.approx(c11, rel=2e-2)
     assert result["summary"]["n_configurations"] == len(keys)
     assert result["summary"]["n_fd_calculations"] == 19
+    assert result["summary"]["n_optimization_steps"] == n_opt
     assert np.isfinite(rows["a"]["emlp_clamped"])
     md = (tmp_path / "out" / "results.md").read_text()
     assert "| C66 |" in md and "within 10 %" in md

@@ -3,6 +3,9 @@
 Stages (each resumable; labels are committed one record at a time to an HDF5 store, so a
 killed run loses at most the calculation in flight)::
 
+    optimize   DFT optimisation of positions and cell (ASE BFGS, P2_1 kept), every step a
+               stored stress-set record -> WORKDIR/optimized.xyz, the reference structure
+               of the finite differences and of the samples (config `optimization`)
     label      DFT reference-tensor calculations first (19: unperturbed + 6 fields + 12
                strains), then the training configurations of every round whose samples can be
                generated (round 0: random displacements; round r>0 needs `sample`), in
@@ -12,7 +15,7 @@ killed run loses at most the calculation in flight)::
     sample     next round's samples from the trained model's BO cell Hessian (600 K)
     emlp       BO cell optimisation with the model, then lattice and tensors (response.py)
     table      results.json + results.md (DFT vs eMLP vs deviation, paper's numbers alongside)
-    all        label, reference, train, emlp, table
+    all        optimize, label, reference, train, emlp, table
 
 Usage (from the project root)::
 
@@ -59,7 +62,7 @@ from emlpack.units import (
 )
 
 HERE = Path(__file__).resolve().parent
-STAGES = ("label", "reference", "train", "sample", "emlp", "table")
+STAGES = ("optimize", "label", "reference", "train", "sample", "emlp", "table")
 
 #: the paper's numbers (emlp-paper.tex, tables tab:beta_glycine_lattice and
 #: tab:beta_glycine_response_properties): PBE-D3(BJ), Quantum ESPRESSO, 3x3x3 k-points, and the
@@ -112,13 +115,37 @@ class Study:
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.log = log
         self._labeler = labeler
-        self.reference = read_structures(cfg["input"])[0].copy(
+        self.input = read_structures(cfg["input"])[0].copy(
             energy=None, forces=None, stress=None, info={})
         r = cfg.get("reference", {})
         self.fd = FDSettings(field_step=float(r.get("field_step_au", 0.005)) * FIELD_AU_IN_V_PER_A,
                              strain_step=float(r.get("strain_step", 0.01)),
                              points=int(r.get("points", 2)))
         (self.workdir / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+
+    @property
+    def optimizing(self) -> bool:
+        return bool(self.cfg.get("optimization", {}).get("enabled", False))
+
+    @property
+    def optimized_path(self) -> Path:
+        return self.workdir / "optimized.xyz"
+
+    @property
+    def reference(self) -> Structure:
+        """The structure of the finite differences and the samples: the DFT optimum when
+        ``optimization.enabled`` (the `optimize` stage must have run), else the input."""
+        if not self.optimizing:
+            return self.input
+        if not self.optimized_path.exists():
+            raise SystemExit(f"{self.optimized_path}: no DFT-optimised structure yet (run the"
+                             " optimize stage, or set optimization.enabled=false)")
+        return read_structures(self.optimized_path)[0].copy(
+            energy=None, forces=None, stress=None, pair_forces=None, info={})
+
+    @property
+    def fd_prefix(self) -> str:
+        return "ref-opt" if self.optimizing else "ref"
 
     @property
     def store_path(self) -> Path:
@@ -168,7 +195,7 @@ class Study:
         return settings.level() if settings is not None else getattr(lab, "level", "custom")
 
     def fd_tasks(self):
-        return reference_tasks(self.reference, self.fd, prefix="ref")
+        return reference_tasks(self.reference, self.fd, prefix=self.fd_prefix)
 
     def round_tasks(self) -> list[LabelTask]:
         """Tasks of every round whose samples can be generated now, interleaved by set."""
@@ -181,14 +208,16 @@ class Study:
                 if not path.exists():
                     continue  # `sample` has not run yet
                 hessian = np.load(path)
+            around = self.input if rnd.get("around") == "input" else self.reference
             tasks = crystal_tasks(
-                self.reference, {"field": rnd.get("field", 0), "stress": rnd.get("stress", 0)},
+                around, {"field": rnd.get("field", 0), "stress": rnd.get("stress", 0)},
                 seed=self.cfg["seed"], round_index=index, hessian=hessian,
                 temperature=float(rnd.get("temperature", 600.0)),
                 sigma=float(rnd.get("sigma", 0.05)),
                 max_strain=float(rnd.get("max_strain", 0.02)),
                 max_field_au=float(rnd.get("max_field_au", 0.01)),
-                min_eigenvalue=rnd.get("min_eigenvalue"), molecule_id=self.cfg["molecule_id"])
+                min_eigenvalue=rnd.get("min_eigenvalue"), molecule_id=self.cfg["molecule_id"],
+                prefix=str(rnd.get("prefix", "")))
             field = [t for t in tasks if not t.stress]
             stress = [t for t in tasks if t.stress]
             for k in range(max(len(field), len(stress))):
@@ -197,6 +226,43 @@ class Study:
 
 
 # ---------------------------------------------------------------------- stages
+def stage_optimize(study: Study) -> dict | None:
+    """DFT optimisation of positions and cell from the input (resumable: the stored steps are
+    replayed) -> WORKDIR/optimized.xyz and optimization.json."""
+    from emlpack.io.extxyz import write_structures
+    from emlpack.qm.crystal_optimize import optimize_crystal
+
+    o = study.cfg.get("optimization", {})
+    if not study.optimizing:
+        study.log("optimize: disabled (optimization.enabled: false), the input is the reference")
+        return None
+    settings = dict(study.cfg.get("cp2k", {}), **o.get("cp2k", {}))
+    labeler = study._labeler
+    if labeler is None:
+        from emlpack.qm.cp2k_labeler import CP2KLabeler, CP2KSettings
+
+        labeler = CP2KLabeler(CP2KSettings(**settings), workdir=study.workdir / "scratch_opt")
+    start = study.input.copy(info={"molecule_id": study.cfg["molecule_id"]})
+    t0 = time.perf_counter()
+    res = optimize_crystal(labeler, start, fmax=float(o.get("fmax", 0.01)),
+                           max_steps=int(o.get("max_steps", 100)),
+                           symprec=o.get("symprec", 0.01), maxstep=float(o.get("maxstep", 0.1)),
+                           store_path=study.store_path, prefix="opt", level=study.level(),
+                           log=study.log)
+    out = {"converged": res.converged, "steps": res.steps, "calculations": res.calculations,
+           "max_force": res.max_force, "max_stress_GPa": res.max_stress_gpa,
+           "time_s": time.perf_counter() - t0, "lattice_input": lattice(study.input.cell),
+           "lattice": lattice(res.structure.cell), "history": res.history}
+    _write_json(study.workdir / "optimization.json", out)
+    if not res.converged:
+        study.log(f"optimize: NOT converged after {res.steps} steps (max force"
+                  f" {res.max_force:.4f} eV/Å); re-run to continue")
+        return out
+    write_structures(study.optimized_path, [res.structure])  # atomic
+    study.log(f"optimize: converged in {res.steps} steps, lattice {out['lattice']}")
+    return out
+
+
 def stage_label(study: Study, until: dt.datetime | None = None,
                 shard: tuple[int, int] = (0, 1)) -> dict:
     """Label the FD reference calculations, then the round samples, skipping stored keys.
@@ -254,7 +320,7 @@ def stage_reference(study: Study) -> dict | None:
         study.log(f"reference: not yet possible: {exc}")
         return None
     out = tensors.as_dict()
-    out["lattice"] = lattice(labeled["ref/zero"].cell)
+    out["lattice"] = lattice(labeled[f"{study.fd_prefix}/zero"].cell)
     out["wall_time_s"] = [float(labeled[t.key].info.get("wall_time", np.nan)) for t in tasks]
     _write_json(study.workdir / "dft.json", out)
     study.log(f"reference: eps diag {np.diag(tensors.dielectric).round(3).tolist()}")
@@ -270,7 +336,7 @@ def _train_store(study: Study) -> Path:
     tmp = path.with_suffix(".tmp.h5")
     tmp.unlink(missing_ok=True)
     with DatasetStore(tmp, "a") as dst:
-        keep = [s for s in study.records() if use_fd or not s.info["key"].startswith("ref/")]
+        keep = [s for s in study.records() if use_fd or not _is_fd(s)]
         for k, s in enumerate(keep):
             s.info = {k: v for k, v in s.info.items() if isinstance(v, (str, float))}
             if not field_forces and np.any(s.field):
@@ -427,10 +493,11 @@ def stage_table(study: Study, out_dir: Path | None = None) -> dict:
     emlp = _read_json(study.workdir / "emlp.json")
     recs = study.records()
     failures = study.failures()
-    n_fd = sum(s.info["key"].startswith("ref/") for s in recs)
+    n_fd = sum(_is_fd(s) for s in recs)
+    n_opt = sum(s.info["key"].startswith("opt/") for s in recs)
     walls = np.array([float(s.info.get("wall_time", np.nan)) for s in recs])
-    n_field = sum(not s.info["key"].startswith("ref/") and bool(np.any(s.field)) for s in recs)
-    n_stress = sum(not s.info["key"].startswith("ref/") and s.stress is not None for s in recs)
+    n_field = sum(not _is_fd(s) and bool(np.any(s.field)) for s in recs)
+    n_stress = sum(not _is_fd(s) and s.stress is not None for s in recs) - n_opt
     dft_v = _flat("dft", dft, "dft")
     if dft:
         dft_v.update({k: float(dft["lattice"][k]) for k in ("a", "b", "c", "beta", "volume")})
@@ -459,6 +526,7 @@ def stage_table(study: Study, out_dir: Path | None = None) -> dict:
         "labeler_settings": getattr(getattr(study.labeler(), "settings", None), "to_dict",
                                     lambda: {})(),
         "n_configurations": len(recs), "n_fd_calculations": n_fd,
+        "n_optimization_steps": n_opt,
         "n_field_set": n_field, "n_stress_set": n_stress, "n_failures": len(failures),
         "wall_time_per_point_s": float(np.nanmean(walls)) if len(walls) else None,
         "total_dft_time_h": float(np.nansum(walls) / 3600.0) if len(walls) else None,
@@ -560,6 +628,11 @@ def markdown(result: dict, notes: str = "") -> str:
 
 
 # ---------------------------------------------------------------------- helpers
+def _is_fd(s: Structure) -> bool:
+    """A finite-difference calculation (at the input or the optimised reference)."""
+    return s.info["key"].split("/")[0] in ("ref", "ref-opt")
+
+
 def _resolve(path) -> Path:
     p = Path(path)
     return p if p.is_absolute() or p.exists() else HERE / p
@@ -595,11 +668,13 @@ def run(stages: list[str], cfg: dict, labeler: Callable | None = None,
     study = Study(copy.deepcopy(cfg), labeler, log)
     order = []
     for s in stages:
-        order += ["label", "reference", "train", "emlp", "table"] if s == "all" else [s]
+        order += (["optimize", "label", "reference", "train", "emlp", "table"] if s == "all"
+                  else [s])
     for s in order:
         if s not in STAGES:
             raise SystemExit(f"unknown stage {s!r} ({', '.join(STAGES)}, all)")
-        {"label": lambda: stage_label(study, until, shard),
+        {"optimize": lambda: stage_optimize(study),
+         "label": lambda: stage_label(study, until, shard),
          "reference": lambda: stage_reference(study), "train": lambda: stage_train(study),
          "sample": lambda: stage_sample(study),
          "emlp": lambda: stage_emlp(study), "table": lambda: stage_table(study)}[s]()
