@@ -81,6 +81,14 @@ def test_resume_replays_stored_steps(setup, tmp_path):
     assert rest.steps == full.steps
     np.testing.assert_allclose(rest.structure.positions, full.structure.positions, atol=1e-10)
     np.testing.assert_allclose(rest.structure.cell, full.structure.cell, atol=1e-10)
+    # other settings: a new trajectory from the same start; its steps are numbered on
+    other = optimize_crystal(ModelLabeler(model, fmax=1e-9), s, max_steps=3, maxstep=0.005,
+                             store_path=store, fmax=1e-3, symprec=None, log=lambda m: None)
+    with DatasetStore(store) as st:
+        keys = st.keys()
+    n_new = other.steps - 1  # all but the (stored) start
+    assert other.calculations == n_new > 0 and len(keys) == rest.steps + n_new
+    assert keys[-1] == f"opt/{rest.steps + n_new - 1:03d}"
 
 
 def test_symmetry_is_kept():

@@ -149,7 +149,8 @@ def optimize_crystal(labeler: Labeler, structure: Structure, *, fmax: float = 0.
         symprec: keep the space group found at this tolerance (Å), None = no constraint.
         maxstep: largest step of one BFGS update (Å).
         store_path: HDF5 store receiving every labeled step as ``{prefix}/{step:03d}`` (kind
-            ``stress``); already stored steps are replayed instead of recomputed.
+            ``stress``; numbered on from the records already there); stored geometries are
+            replayed instead of recomputed.
         level, log: level-of-theory text for the records; progress messages.
     """
     from ase.filters import FrechetCellFilter
@@ -179,7 +180,9 @@ def optimize_crystal(labeler: Labeler, structure: Structure, *, fmax: float = 0.
         if not cached:
             counts["new"] += 1
             if store is not None:
-                info = dict(s.info, key=f"{prefix}/{step:03d}", kind="stress")
+                # next free index: a re-run with other settings continues the numbering
+                info = dict(s.info, key=f"{prefix}/{len(cache) + counts['new'] - 1:03d}",
+                            kind="stress")
                 if level:
                     info["level"] = level
                 store.append(s.copy(info=info))
