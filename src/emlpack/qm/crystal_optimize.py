@@ -148,7 +148,7 @@ def optimize_crystal(labeler: Labeler, structure: Structure, *, fmax: float = 0.
         max_steps: BFGS steps at most.
         symprec: keep the space group found at this tolerance (Å), None = no constraint.
         maxstep: largest step of one BFGS update (Å).
-        store_path: HDF5 store receiving every labeled step as ``{prefix}/{step:03d}`` (kind
+        store_path: HDF5 store receiving every labeled step as ``{prefix}/NNN`` (kind
             ``stress``; numbered on from the records already there); stored geometries are
             replayed instead of recomputed.
         level, log: level-of-theory text for the records; progress messages.
