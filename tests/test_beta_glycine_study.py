@@ -53,7 +53,7 @@ def test_study_runs_end_to_end_and_resumes(tmp_path, fake):
         "training.overrides=['model.n_features=8', 'model.n_filters=8', 'model.n_rbf=8',"
         " 'training.max_epochs=2', 'training.batch_size=8', 'model.elements=[1, 8]']",
         "emlp.max_iterations=3", "emlp.fmax=1e-3", "emlp.smax=1e-4",
-        "optimization.fmax=0.02", "optimization.symprec=null",
+        "optimization.enabled=true", "optimization.fmax=0.02", "optimization.symprec=null",
     ])
     labeler = ModelLabeler(model, fmax=1e-8)
     lines = []
