@@ -256,7 +256,8 @@ def stage_optimize(study: Study) -> dict | None:
     _write_json(study.workdir / "optimization.json", out)
     if not res.converged:
         study.log(f"optimize: NOT converged after {res.steps} steps (max force"
-                  f" {res.max_force:.4f} eV/Å); re-run to continue")
+                  f" {res.max_force:.4f} eV/Å); raise optimization.max_steps and re-run (the"
+                  " stored steps are replayed, not recomputed)")
         return out
     write_structures(study.optimized_path, [res.structure])  # atomic
     study.log(f"optimize: converged in {res.steps} steps, lattice {out['lattice']}")
