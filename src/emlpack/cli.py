@@ -357,7 +357,65 @@ def _add_md_ir(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _add_campaign(sub) -> None:
+    p = sub.add_parser("campaign", help="a labeling campaign into immutable shards"
+                       " (init: molecule list and split; run: label, resumable; card)")
+    csub = p.add_subparsers(dest="action", required=True)
+    pi = csub.add_parser("init", help="fix the molecule list, its seed and the split")
+    pi.add_argument("folder", help="data-set folder, e.g. datasets/mini-eqm7")
+    pi.add_argument("--smiles", required=True, help="QM7 SMILES CSV (column 'smiles')")
+    pi.add_argument("--seed", type=int, default=0, help="sample and split seed (default 0)")
+    pi.add_argument("--n-large", type=int, default=100,
+                    help="molecules with 6-7 heavy atoms to draw (default 100)")
+    pi.add_argument("--samples-per-molecule", type=int, default=6, help="default 6")
+    pr = csub.add_parser("run", help="label the next configurations (resumes from the shards)")
+    pr.add_argument("folder")
+    pr.add_argument("--workers", type=int, default=2,
+                    help="labeling processes (default 2: measured faster than 1 x 2 threads)")
+    pr.add_argument("--threads", type=int, help="threads per process (default CPUs/workers)")
+    pr.add_argument("--hours", type=float, help="stop after this wall time")
+    pr.add_argument("--shard-minutes", type=float, default=20.0,
+                    help="finished labels become a new shard this often (default 20)")
+    pr.add_argument("--commit", action="store_true", help="git-commit each new shard")
+    pr.add_argument("--quiet", action="store_true", help="no progress bar")
+    pc = csub.add_parser("card", help="regenerate README.md from the shards")
+    pc.add_argument("folder")
+
+    def run(args):
+        import logging
+
+        from emlpack.data.store import StoreError
+        from emlpack.qm import campaign
+        from emlpack.qm.sampling import SamplingError
+
+        logging.basicConfig(format="%(asctime)s %(name)s: %(message)s")
+        logging.getLogger("emlpack").setLevel(logging.INFO)
+        try:
+            if args.action == "init":
+                mols = campaign.init_campaign(args.folder, args.smiles, seed=args.seed,
+                                              n_large=args.n_large,
+                                              samples_per_molecule=args.samples_per_molecule)
+                print(f"{args.folder}: {len(mols)} molecules listed")
+            elif args.action == "run":
+                out = campaign.run_campaign(args.folder, workers=args.workers,
+                                            threads=args.threads, hours=args.hours,
+                                            shard_minutes=args.shard_minutes,
+                                            commit=args.commit, progress=not args.quiet)
+                print(f"{args.folder}: {out['new_records']} new configurations,"
+                      f" {out['new_failures']} new failures, {len(out['shards'])} shards"
+                      f" in {out['wall_s'] / 3600:.2f} h")
+            else:
+                print(campaign.write_card(args.folder))
+        except (SamplingError, StoreError, OSError) as exc:
+            print(f"emlp campaign: error: {exc}", file=sys.stderr)
+            return 2
+        return 0
+
+    p.set_defaults(func=run)
+
+
 COMMANDS = [_add_train, _add_evaluate, _add_demo, _add_relabel, _add_convert_reference, _add_label]
+COMMANDS += [_add_campaign]
 COMMANDS += [_add_ir, _add_polarizability, _add_response, _add_optimize]
 COMMANDS += [_add_md, _add_md_analysis, _add_md_ir]
 

@@ -18,7 +18,7 @@ import os
 import re
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -140,26 +140,72 @@ def pyscf_hessian(labeler: PySCFLabeler, numbers, positions) -> np.ndarray:
     return h.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n) * HARTREE * ANGSTROM_IN_BOHR**2
 
 
+#: preparation levels computed with GFN-xTB (package ``tblite``) instead of PySCF
+XTB_LEVELS = {"gfn2-xtb": "GFN2-xTB", "gfn1-xtb": "GFN1-xTB"}
+
+
+def preparation_level_name(spec: str | None) -> str:
+    """Canonical name of a preparation level: an xTB method or a PySCF level name."""
+    if isinstance(spec, str) and spec.strip().lower() in XTB_LEVELS:
+        return spec.strip().lower()
+    return parse_level(spec).name
+
+
+def _preparation_calculator(level: str, threads: int | None):
+    """An ASE calculator (energy, forces at zero field) at a preparation level."""
+    if level in XTB_LEVELS:
+        try:
+            from tblite.ase import TBLite
+        except ImportError as exc:
+            raise SamplingError(
+                f"preparation level {level}: needs the package tblite (pip install tblite)"
+            ) from exc
+        return TBLite(method=XTB_LEVELS[level], verbosity=0)
+    return _LabelerCalculator(PySCFLabeler(level, threads=threads))
+
+
+def _finite_difference_hessian(atoms, delta: float = 0.005) -> np.ndarray:
+    """Cartesian Hessian (eV/Å^2) by central differences of the forces (ASE Vibrations)."""
+    import tempfile
+
+    from ase.vibrations import Vibrations
+
+    with tempfile.TemporaryDirectory(prefix="emlp-vib-") as tmp:
+        vib = Vibrations(atoms, name=str(Path(tmp) / "vib"), delta=delta, nfree=2)
+        vib.run()
+        return vib.get_vibrations().get_hessian_2d()
+
+
 def prepare_task(source, level: str, optimize: bool, fmax: float, seed: int,
                  threads: int | None = None, hessian: bool = True) -> Molecule:
-    """Build (SMILES), optimise and compute the Hessian of one molecule (runs on a worker)."""
+    """Build (SMILES), optimise and compute the Hessian of one molecule (runs on a worker).
+
+    ``level``: a PySCF level (analytic Hessian) or an xTB method of :data:`XTB_LEVELS`
+    (seconds per molecule; Hessian by finite differences of the forces).
+    """
+    from ase import Atoms
+
     mol = source if isinstance(source, Molecule) else molecule_from_smiles(
         source[1], name=source[0], seed=seed)
-    labeler = PySCFLabeler(level, threads=threads)
-    pos = mol.positions
+    if threads and level in XTB_LEVELS:
+        os.environ["OMP_NUM_THREADS"] = str(threads)
+    atoms = Atoms(numbers=mol.numbers, positions=mol.positions)
+    atoms.calc = _preparation_calculator(level, threads)
     if optimize and len(mol.numbers) > 1:
-        from ase import Atoms
         from ase.optimize import BFGS
 
-        atoms = Atoms(numbers=mol.numbers, positions=pos)
-        atoms.calc = _LabelerCalculator(labeler)
         opt = BFGS(atoms, logfile=None)
         if not opt.run(fmax=fmax, steps=300):
             raise SamplingError(f"{mol.name}: geometry optimisation did not converge")
-        pos = atoms.positions.copy()
-    mol.positions = pos
+    mol.positions = atoms.positions.copy()
     n = 3 * len(mol.numbers)
-    mol.hessian = pyscf_hessian(labeler, mol.numbers, pos) if hessian else np.zeros((n, n))
+    if not hessian:
+        mol.hessian = np.zeros((n, n))
+    elif level in XTB_LEVELS:
+        mol.hessian = _finite_difference_hessian(atoms)
+    else:
+        mol.hessian = pyscf_hessian(PySCFLabeler(level, threads=threads), mol.numbers,
+                                    mol.positions)
     return mol
 
 
@@ -262,11 +308,15 @@ def expected_keys(name: str, recipe: dict) -> list[str]:
 
 
 def _save_prepared(prep_dir: Path, mol: Molecule, level: str) -> None:
+    """Write a prepared molecule once (temporary file, then rename; never overwritten)."""
     prep_dir.mkdir(parents=True, exist_ok=True)
     final = prep_dir / f"{mol.name}.npz"
+    if final.exists():
+        return
     tmp = prep_dir / f".{mol.name}.{os.getpid()}.tmp.npz"
-    np.savez(tmp, numbers=mol.numbers, positions=mol.positions, bonds=mol.bonds,
-             ring_bonds=mol.ring_bonds, hessian=mol.hessian, smiles=mol.smiles, level=level)
+    np.savez_compressed(tmp, numbers=mol.numbers, positions=mol.positions, bonds=mol.bonds,
+                        ring_bonds=mol.ring_bonds, hessian=mol.hessian, smiles=mol.smiles,
+                        level=level)
     os.replace(tmp, final)
 
 
@@ -282,6 +332,10 @@ def _load_prepared(prep_dir: Path, name: str, level: str) -> Molecule | None:
                         smiles=str(d["smiles"]))
 
 
+#: Dask priorities: labels of prepared molecules run before the next preparation
+_PRIORITY_LABEL, _PRIORITY_PREPARE = 10, 0
+
+
 def run_labeling(
     sources: list,
     store_path: str | Path,
@@ -291,14 +345,27 @@ def run_labeling(
     progress: bool = True,
     retry_failed: bool = False,
     skipped: list[str] | None = None,
+    threads: int | None = None,
+    prep_dir: str | Path | None = None,
+    exclude_keys: set[str] | None = None,
+    on_stored: Callable[[DatasetStore], bool] | None = None,
 ) -> LabelingSummary:
     """Label ``sources`` (``(name, smiles)`` or :class:`Molecule`) into the store.
+
+    Molecules are prepared in their order, at most one per worker ahead of the labeling: a
+    molecule's configurations are labeled as soon as it is prepared, before the next
+    preparations (Dask priorities), so labels arrive from the first minutes on.
 
     Args:
         recipe: a resolved recipe (see :mod:`emlpack.qm.recipe`).
         scheduler: address of an existing Dask scheduler; None starts a ``LocalCluster``.
         workers: LocalCluster workers (default: CPU count); 0 runs everything in-process.
         retry_failed: label again the keys recorded as failed.
+        threads: OpenMP threads per task (default: CPU count / workers).
+        prep_dir: folder of the prepared molecules (default ``STORE.prep``).
+        exclude_keys: keys finished elsewhere (e.g. in committed shards): not labeled again.
+        on_stored: called with the store after each stored record or failure; returning
+            True stops the run (tasks in flight are dropped, finished ones are kept).
     """
     from tqdm import tqdm
 
@@ -306,7 +373,7 @@ def run_labeling(
     store_path = Path(store_path)
     level = parse_level(recipe.get("level")).name
     prep = recipe.get("prepare", {}) or {}
-    prep_level = parse_level(prep.get("level") or recipe.get("level")).name
+    prep_level = preparation_level_name(prep.get("level") or recipe.get("level"))
     seed = int(recipe.get("seed", 0))
     boys = int(recipe.get("boys_starts", 3))
     recipe_text = yaml.safe_dump(recipe, sort_keys=True)
@@ -321,6 +388,7 @@ def run_labeling(
         )
     store.set_metadata(recipe=recipe_text, level=level)
     done = set(store.keys()) if retry_failed else store.done_keys()
+    done |= set(exclude_keys or ())
     summary = LabelingSummary(str(store_path), skipped_molecules=list(skipped or []))
 
     names = [s.name if isinstance(s, Molecule) else s[0] for s in sources]
@@ -345,54 +413,75 @@ def run_labeling(
 
     n_workers = (os.cpu_count() or 1) if workers is None else int(workers)
     use_dask = bool(scheduler) or n_workers > 0
-    threads = max(1, (os.cpu_count() or 1) // max(n_workers, 1)) if use_dask else None
+    if threads is None:
+        threads = max(1, (os.cpu_count() or 1) // max(n_workers, 1)) if use_dask else None
     client = _dask_client(scheduler, n_workers) if use_dask else _SerialPool()
-    prep_dir = Path(str(store_path) + ".prep")
+    prep_dir = Path(prep_dir) if prep_dir is not None else Path(str(store_path) + ".prep")
     bar = tqdm(total=total, desc="label", unit="conf", disable=not progress, file=sys.stderr)
+    waiting = list(todo)  # molecules still to prepare, in order
+    in_flight = {"prep": 0}
     try:
         ac = _Completion(use_dask)
 
         def submit_prepare(src, name, hessian=True, level_=prep_level):
             cached = _load_prepared(prep_dir, name, level_)
             if cached is not None:
-                fut = client.submit(_identity, cached, pure=False)
+                fut = client.submit(_identity, cached, pure=False, priority=_PRIORITY_PREPARE)
             else:
                 fut = client.submit(prepare_task, src, level_, bool(prep.get("optimize", True)),
                                     float(prep.get("fmax", 0.01)), seed, threads, hessian,
-                                    pure=False)
+                                    pure=False, priority=_PRIORITY_PREPARE)
             ac.add(fut, ("prep", name))
 
+        def feed() -> None:
+            """Keep one preparation per worker ahead of the labeling."""
+            while waiting and in_flight["prep"] < max(1, n_workers):
+                name = waiting.pop(0)
+                submit_prepare(todo[name][0], name)
+                in_flight["prep"] += 1
+
+        def submit_label(conf: Configuration, tag: str) -> None:
+            ac.add(client.submit(label_task, conf, level, boys, seed, threads,
+                                 pure=False, priority=_PRIORITY_LABEL), ("label", tag))
+
         probes: dict[str, Molecule] = {}
+        for h, (_key, smi) in hydride_keys.items():
+            # references: optimised at the labeling level itself, no Hessian needed
+            submit_prepare((f"hydride-{h}", smi), f"hydride-{h}", hessian=False, level_=level)
         if need_probes:
             for pname in recipe.get("dimer", {}).get("probes", list(PROBES)):
                 submit_prepare((f"probe-{pname}", PROBES[pname]), f"probe-{pname}")
         else:
-            for name, (src, _) in todo.items():
-                submit_prepare(src, name)
-        for h, (_key, smi) in hydride_keys.items():
-            # references: optimised at the labeling level itself, no Hessian needed
-            submit_prepare((f"hydride-{h}", smi), f"hydride-{h}", hessian=False, level_=level)
+            feed()
         waiting_probes = len(recipe.get("dimer", {}).get("probes", PROBES)) if need_probes else 0
+
+        def record_failures(name: str, keys, reason: str) -> None:
+            store.add_failures({"key": k, "molecule_id": name, "kind": k.split("/")[1],
+                                "reason": reason} for k in sorted(keys))
+            summary.n_failed_new += len(keys)
+            summary.failures.append(f"{name}: {reason}")
+            bar.update(len(keys))
 
         for fut in ac:
             kind, name = ac.tag(fut)
+            stop = False
             if kind == "prep":
+                if not name.startswith(("probe-", "hydride-")):
+                    in_flight["prep"] -= 1
                 try:
                     mol = fut.result()
                 except Exception as exc:  # noqa: BLE001 - recorded, the run goes on
                     reason = f"preparation failed: {type(exc).__name__}: {exc}"
                     if name.startswith("probe-"):
                         raise SamplingError(f"dimer probe {name}: {reason}") from exc
-                    keys = (
-                        todo[name][1] if name in todo
-                        else {hydride_keys[name.split("-", 1)[1]][0]}
-                    )
-                    store.add_failures({"key": k, "molecule_id": name,
-                                        "kind": k.split("/")[1], "reason": reason}
-                                       for k in sorted(keys))
-                    summary.n_failed_new += len(keys)
-                    summary.failures.append(f"{name}: {reason}")
-                    bar.update(len(keys))
+                    if name.startswith("hydride-"):
+                        record_failures(name, {hydride_keys[name.split("-", 1)[1]][0]}, reason)
+                    else:
+                        record_failures(name, todo[name][1], reason)
+                        feed()
+                    stop = bool(on_stored and on_stored(store))
+                    if stop:
+                        break
                     continue
                 _save_prepared(prep_dir, mol, level if name.startswith("hydride-") else prep_level)
                 if name.startswith("probe-"):
@@ -400,40 +489,35 @@ def run_labeling(
                     mol.name = name.removeprefix("probe-")
                     waiting_probes -= 1
                     if waiting_probes == 0:
-                        for mname, (src, _) in todo.items():
-                            submit_prepare(src, mname)
+                        feed()
                     continue
                 if name.startswith("hydride-"):
                     h = name.removeprefix("hydride-")
-                    conf = Configuration(hydride_keys[h][0], h, "hydride", mol.numbers,
-                                         mol.positions, np.zeros(3))
-                    ac.add(client.submit(label_task, conf, level, boys, seed, threads,
-                                         pure=False), ("label", name))
+                    submit_label(Configuration(hydride_keys[h][0], h, "hydride", mol.numbers,
+                                               mol.positions, np.zeros(3)), name)
                     continue
                 try:
                     confs = configurations(mol, recipe, probes, skip=done)
                 except SamplingError as exc:
-                    keys = todo[name][1]
-                    store.add_failures({"key": k, "molecule_id": name,
-                                        "kind": k.split("/")[1], "reason": str(exc)}
-                                       for k in sorted(keys))
-                    summary.n_failed_new += len(keys)
-                    bar.update(len(keys))
+                    record_failures(name, todo[name][1], str(exc))
+                    feed()
+                    stop = bool(on_stored and on_stored(store))
+                    if stop:
+                        break
                     continue
                 for conf in confs:
-                    ac.add(client.submit(label_task, conf, level, boys, seed, threads,
-                                         pure=False), ("label", conf.key))
+                    submit_label(conf, conf.key)
+                feed()  # after the labels: a serial pool runs tasks in submission order
             else:
                 try:
                     conf, res = fut.result()
                 except Exception as exc:  # noqa: BLE001 - e.g. a worker died: record it
                     key = name if "/" in name else f"hydride/{name.split('-', 1)[1]}/0000"
                     reason = f"task failed: {type(exc).__name__}: {exc}"
-                    store.add_failures([{"key": key, "molecule_id": key.split("/")[0],
-                                         "kind": key.split("/")[1], "reason": reason}])
-                    summary.n_failed_new += 1
-                    summary.failures.append(f"{key}: {reason}")
-                    bar.update(1)
+                    record_failures(key.split("/")[0], [key], reason)
+                    stop = bool(on_stored and on_stored(store))
+                    if stop:
+                        break
                     continue
                 if res.ok:
                     s = res.to_structure(source=conf.key, info={
@@ -443,12 +527,11 @@ def run_labeling(
                     summary.n_new += 1
                     if conf.kind == "hydride":
                         store.set_reference(conf.molecule_id, res.energy, res.level)
+                    bar.update(1)
                 else:
-                    store.add_failures([{"key": conf.key, "molecule_id": conf.molecule_id,
-                                         "kind": conf.kind, "reason": res.error}])
-                    summary.n_failed_new += 1
-                    summary.failures.append(f"{conf.key}: {res.error}")
-                bar.update(1)
+                    record_failures(conf.molecule_id, [conf.key], res.error)
+                if on_stored and on_stored(store):
+                    break
     finally:
         bar.close()
         client.close()

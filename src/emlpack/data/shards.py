@@ -1,0 +1,137 @@
+"""A data set stored as immutable shards beside its card (torch-free reader).
+
+Layout of a data-set folder (see :mod:`emlpack.qm.campaign`, which writes it)::
+
+    molecules.csv      name, source, smiles, n_heavy, split: fixed before any label exists
+    campaign.yaml      selection and labeling recipe
+    README.md          the data-set card
+    shards/NNNN.h5     finished labels, one small :class:`~emlpack.data.store.DatasetStore`
+                       per shard, never rewritten once committed
+    prepared/NAME.npz  the cheap-level geometry and Hessian each molecule was sampled from
+
+:func:`read_shards` reads every shard as one data set, with the split taken from
+``molecules.csv`` (by molecule), so the split never depends on which labels are finished.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from emlpack.data.store import DatasetStore, StoreError
+from emlpack.structure import Structure
+
+#: the hydride references, in the order the trainer expects them
+HYDRIDE_NAMES = ("H2", "CH4", "NH3", "H2O")
+SPLITS = ("train", "val", "test")
+MOLECULES_FILE = "molecules.csv"
+SHARD_DIR = "shards"
+
+
+@dataclass
+class ShardedData:
+    """All shards of a data-set folder.
+
+    Attributes:
+        structures: labeled configurations (hydride references excluded), shard order.
+        hydrides: ``None`` or ``{"structures": [...], "energies": [...]}`` (eV) in the order
+            of :data:`HYDRIDE_NAMES`, when all four references are labeled.
+        molecules: one dict per row of ``molecules.csv``.
+        split_of: molecule name -> ``"train"``, ``"val"`` or ``"test"``.
+        failures: recorded failures (``key``, ``molecule_id``, ``kind``, ``reason``).
+        shards: the shard files read.
+        metadata: per shard, its metadata attributes (e.g. wall time of the run that wrote it).
+    """
+
+    structures: list[Structure]
+    hydrides: dict | None
+    molecules: list[dict]
+    split_of: dict[str, str]
+    failures: list[dict] = field(default_factory=list)
+    shards: list[Path] = field(default_factory=list)
+    metadata: list[dict] = field(default_factory=list)
+
+    def split_indices(self) -> dict[str, np.ndarray]:
+        """``{"train", "val", "test"}`` -> indices into :attr:`structures` (by the card)."""
+        out: dict[str, list[int]] = {k: [] for k in SPLITS}
+        for i, s in enumerate(self.structures):
+            name = str(s.info.get("molecule_id", ""))
+            if name not in self.split_of:
+                raise StoreError(f"{s.source}: molecule {name!r} is not in {MOLECULES_FILE}")
+            out[self.split_of[name]].append(i)
+        return {k: np.array(v, dtype=np.int64) for k, v in out.items()}
+
+
+def is_sharded(path: str | Path) -> bool:
+    """True when ``path`` is a data-set folder (has ``molecules.csv``)."""
+    return Path(path).is_dir() and (Path(path) / MOLECULES_FILE).is_file()
+
+
+def read_molecule_table(folder: str | Path) -> list[dict]:
+    """Rows of ``FOLDER/molecules.csv`` (``n_heavy`` as int); checks names and splits."""
+    path = Path(folder) / MOLECULES_FILE
+    if not path.is_file():
+        raise StoreError(f"{folder}: no {MOLECULES_FILE} (not a sharded data set)")
+    with path.open() as fh:
+        rows = list(csv.DictReader(fh))
+    seen = set()
+    for k, row in enumerate(rows, start=2):
+        if row.get("split") not in SPLITS or not row.get("name"):
+            raise StoreError(f"{path}, line {k}: needs a name and a split in {SPLITS}")
+        if row["name"] in seen:
+            raise StoreError(f"{path}, line {k}: duplicate molecule {row['name']!r}")
+        seen.add(row["name"])
+        row["n_heavy"] = int(row["n_heavy"])
+    return rows
+
+
+def shard_paths(folder: str | Path) -> list[Path]:
+    """The shard files of ``folder`` in order (``shards/NNNN.h5``)."""
+    return sorted((Path(folder) / SHARD_DIR).glob("[0-9][0-9][0-9][0-9].h5"))
+
+
+def read_shards(folder: str | Path) -> ShardedData:
+    """Every shard of ``folder`` as one data set with the card's split (missing shards: none)."""
+    molecules = read_molecule_table(folder)
+    split_of = {m["name"]: m["split"] for m in molecules}
+    structures: list[Structure] = []
+    failures: list[dict] = []
+    refs: dict[str, dict] = {}
+    hyd: dict[str, Structure] = {}
+    metadata = []
+    seen: dict[str, Path] = {}
+    paths = shard_paths(folder)
+    for path in paths:
+        with DatasetStore(path, "r") as store:
+            metadata.append(store.metadata)
+            refs.update(store.references())
+            failures.extend(store.failures())
+            for s in store:
+                key = str(s.info.get("key", ""))
+                if key in seen:
+                    raise StoreError(f"{path}: record {key!r} is also in {seen[key]}")
+                seen[key] = path
+                if s.info.get("kind") == "hydride":
+                    hyd[str(s.info.get("molecule_id"))] = s
+                else:
+                    structures.append(s)
+    hydrides = None
+    if all(h in hyd for h in HYDRIDE_NAMES):
+        hydrides = {
+            "structures": [hyd[h] for h in HYDRIDE_NAMES],
+            "energies": [refs[h]["energy"] if h in refs else hyd[h].energy
+                         for h in HYDRIDE_NAMES],
+        }
+    return ShardedData(structures, hydrides, molecules, split_of, failures, paths, metadata)
+
+
+def finished_keys(folder: str | Path) -> set[str]:
+    """Keys of every record and recorded failure in the shards of ``folder``."""
+    keys: set[str] = set()
+    for path in shard_paths(folder):
+        with DatasetStore(path, "r") as store:
+            keys |= store.done_keys()
+    return keys

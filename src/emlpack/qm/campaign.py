@@ -1,0 +1,428 @@
+"""A labeling campaign: a fixed molecule list and split, labeled into immutable shards.
+
+``emlp campaign init FOLDER --smiles qm7_smiles.csv`` fixes the molecule list, its seed and the
+split (``molecules.csv``) and the recipe (``campaign.yaml``) before any label exists.
+``emlp campaign run FOLDER`` labels with :func:`emlpack.qm.labeling.run_labeling` into a working
+store (``FOLDER/work/``, not committed) and moves the finished records every few minutes into a
+new shard ``FOLDER/shards/NNNN.h5`` (temporary file, then rename; never rewritten), with the
+prepared molecules in ``FOLDER/prepared/`` and the card ``FOLDER/README.md`` regenerated from
+the shards. With ``commit=True`` each new shard is committed to git at once, so a session that
+ends without warning loses at most the configurations in flight. A re-run on any machine
+continues with the keys no shard holds yet (see :mod:`emlpack.data.shards` for the reader).
+
+Molecule selection (the mini-eQM7 rules): QM7 rows 0-9 (the paper's validation molecules) are
+never labeled, sulfur is out of scope, the paper's IR test molecules are forced into the test
+split, every molecule with 2-5 heavy atoms comes first, then a seeded sample of 6-7 heavy atoms.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import logging
+import os
+import socket
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from emlpack.data.shards import (
+    MOLECULES_FILE,
+    SHARD_DIR,
+    SPLITS,
+    finished_keys,
+    read_molecule_table,
+    read_shards,
+    shard_paths,
+)
+from emlpack.data.store import DatasetStore, StoreError
+from emlpack.qm.recipe import default_recipe, rescale_counts, validate_recipe
+from emlpack.qm.sampling import SamplingError
+
+log = logging.getLogger(__name__)
+
+CAMPAIGN_FILE = "campaign.yaml"
+#: QM7 rows never labeled: 0-4 and 7 are the authors' own DFT data (a second test set), 5, 6, 8
+#: and 9 (acetaldehyde, dimethyl ether, propane, propene) are reserved for an independent check
+EXCLUDED_ROWS = {0: "paper validation (shared DFT data)", 1: "paper validation (shared DFT data)",
+                 2: "paper validation (shared DFT data)", 3: "paper validation (shared DFT data)",
+                 4: "paper validation (shared DFT data)", 5: "reserved", 6: "reserved",
+                 7: "paper validation (shared DFT data)", 8: "reserved", 9: "reserved"}
+#: the paper's IR test molecules (test split only): aziridine and 3-(methylamino)but-2-enal
+IR_TEST_SMILES = {"aziridine": "C1CN1", "3-(methylamino)but-2-enal": "CNC(C)=CC=O"}
+
+
+# ---------------------------------------------------------------------------------- selection
+def canonical(smiles: str) -> str:
+    """Canonical heavy-atom SMILES after QM7's radical brackets are restored (RDKit)."""
+    from rdkit import Chem, RDLogger
+
+    from emlpack.qm.sampling import restore_closed_shell
+
+    RDLogger.DisableLog("rdApp.*")
+    mol = Chem.MolFromSmiles(smiles)
+    if mol is None:
+        raise SamplingError(f"RDKit cannot parse SMILES {smiles!r}")
+    return Chem.MolToSmiles(Chem.RemoveHs(restore_closed_shell(mol)))
+
+
+def select_molecules(csv_path: str | Path, seed: int = 0, n_large: int = 100,
+                     fractions: tuple[float, float, float] = (0.9, 0.05, 0.05)) -> list[dict]:
+    """The campaign's ordered molecule list with its split.
+
+    Returns dicts with ``name`` (``qm7-ROW`` or ``extra-K``), ``source`` (CSV row or
+    ``smiles``), ``smiles``, ``n_heavy`` and ``split``. Order: every sulfur-free molecule with
+    2-5 heavy atoms (CSV order; open shells skipped), then the IR molecules missing from the
+    CSV, then ``n_large`` molecules with 6-7 heavy atoms drawn with ``seed``. Split by
+    molecule over the whole list: the IR molecules in test, the rest shuffled with ``seed``
+    into ``fractions``.
+    """
+    from rdkit import Chem, RDLogger
+
+    RDLogger.DisableLog("rdApp.*")
+    csv_path = Path(csv_path)
+    with csv_path.open() as fh:
+        rows = list(csv.DictReader(fh))
+    excluded = {canonical(rows[i]["smiles"]) for i in EXCLUDED_ROWS if i < len(rows)}
+    ir_canon = {canonical(s): label for label, s in IR_TEST_SMILES.items()}
+    small, large, seen = [], [], set()
+    for i, row in enumerate(rows):
+        if i in EXCLUDED_ROWS:
+            continue
+        mol = Chem.MolFromSmiles(row["smiles"])
+        if mol is None or any(a.GetSymbol() not in ("H", "C", "N", "O") for a in mol.GetAtoms()):
+            continue  # unparsable, sulfur (out of scope) or another element
+        try:
+            can = canonical(row["smiles"])
+        except SamplingError:
+            continue  # radical brackets that cannot be paired: open shell, out of scope
+        if can in excluded or can in seen:
+            continue
+        seen.add(can)
+        entry = {"name": f"qm7-{i:04d}", "source": f"row {i}", "smiles": row["smiles"],
+                 "n_heavy": mol.GetNumHeavyAtoms(), "canonical": can}
+        if 2 <= entry["n_heavy"] <= 5:
+            small.append(entry)
+        elif entry["n_heavy"] in (6, 7):
+            large.append(entry)
+    extra = []
+    for can, label in ir_canon.items():
+        if can not in seen:
+            extra.append({"name": f"extra-{len(extra):04d}", "source": f"added: {label}",
+                          "smiles": IR_TEST_SMILES[label],
+                          "n_heavy": Chem.MolFromSmiles(can).GetNumHeavyAtoms(),
+                          "canonical": can})
+    rng = np.random.default_rng(seed)
+    ir_in_large = [e for e in large if e["canonical"] in ir_canon]
+    pool = [e for e in large if e["canonical"] not in ir_canon]
+    picked = [pool[k] for k in rng.permutation(len(pool))[: max(0, n_large - len(ir_in_large))]]
+    molecules = small + extra + ir_in_large + picked
+    # split: IR molecules in test, the others shuffled into the fractions
+    f = np.asarray(fractions, dtype=float) / np.sum(fractions)
+    n = len(molecules)
+    n_test, n_val = int(round(f[2] * n)), int(round(f[1] * n))
+    forced = [m for m in molecules if m["canonical"] in ir_canon]
+    others = [m for m in molecules if m["canonical"] not in ir_canon]
+    order = rng.permutation(len(others))
+    n_more_test = max(0, n_test - len(forced))
+    for rank, k in enumerate(order):
+        others[k]["split"] = ("test" if rank < n_more_test
+                              else "val" if rank < n_more_test + n_val else "train")
+    for m in forced:
+        m["split"] = "test"
+    return molecules
+
+
+def campaign_recipe(samples_per_molecule: int = 6, prepare_level: str = "gfn2-xtb") -> dict:
+    """The paper's recipe and level with ``samples_per_molecule`` configurations in the paper's
+    proportions (NMS 600 K : 800 K : 800 K + torsion : 800 K + dimer = 1 : 1 : 1.5 : 1.5),
+    prepared (geometry, Hessian for the normal modes) at the cheap ``prepare_level``."""
+    recipe = default_recipe()
+    recipe["samples"] = rescale_counts(recipe["samples"], samples_per_molecule)
+    recipe["prepare"]["level"] = prepare_level
+    validate_recipe(recipe)
+    return recipe
+
+
+def init_campaign(folder: str | Path, smiles_csv: str | Path, seed: int = 0,
+                  n_large: int = 100, samples_per_molecule: int = 6,
+                  prepare_level: str = "gfn2-xtb", name: str | None = None) -> list[dict]:
+    """Write ``molecules.csv`` (list and split) and ``campaign.yaml`` (recipe); refuse to
+    overwrite an existing campaign, whose split must never change."""
+    folder = Path(folder)
+    if (folder / MOLECULES_FILE).exists():
+        raise StoreError(f"{folder}: a campaign exists already ({MOLECULES_FILE}); its list"
+                         " and split are fixed")
+    molecules = select_molecules(smiles_csv, seed=seed, n_large=n_large)
+    folder.mkdir(parents=True, exist_ok=True)
+    settings = {
+        "name": name or folder.name,
+        "source": Path(smiles_csv).name,
+        "seed": seed,
+        "n_large": n_large,
+        "fractions": [0.9, 0.05, 0.05],
+        "recipe": campaign_recipe(samples_per_molecule, prepare_level),
+    }
+    _write_text(folder / CAMPAIGN_FILE, yaml.safe_dump(settings, sort_keys=False))
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=["name", "source", "smiles", "n_heavy", "split"],
+                            extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(molecules)
+    _write_text(folder / MOLECULES_FILE, buf.getvalue())
+    write_card(folder)
+    return molecules
+
+
+def load_settings(folder: str | Path) -> dict:
+    path = Path(folder) / CAMPAIGN_FILE
+    if not path.is_file():
+        raise StoreError(f"{folder}: no {CAMPAIGN_FILE} (run `emlp campaign init` first)")
+    return yaml.safe_load(path.read_text())
+
+
+# ---------------------------------------------------------------------------------- shards
+def export_shard(folder: str | Path, store: DatasetStore, run_info: dict) -> Path | None:
+    """Move the records and failures of ``store`` that no shard holds into a new shard.
+
+    Returns the new shard's path (``None`` when there is nothing new). The shard is written
+    under a temporary name and renamed, so a shard file is always complete.
+    """
+    folder = Path(folder)
+    have = finished_keys(folder)
+    keys = store.keys()
+    new_idx = [i for i, k in enumerate(keys) if k not in have]
+    new_fail = [f for f in store.failures() if f["key"] not in have and f["key"] not in keys]
+    if not new_idx and not new_fail:
+        return None
+    paths = shard_paths(folder)
+    number = int(paths[-1].stem) + 1 if paths else 0
+    final = folder / SHARD_DIR / f"{number:04d}.h5"
+    tmp = final.with_name(f".{final.name}.{os.getpid()}.tmp")
+    tmp.unlink(missing_ok=True)
+    refs = store.references()
+    with DatasetStore(tmp, "a", compact=True) as shard:
+        shard.append([store.structure(i) for i in new_idx])
+        shard.add_failures(new_fail)
+        for i in new_idx:
+            s = store.structure(i)
+            if s.info.get("kind") == "hydride" and s.info["molecule_id"] in refs:
+                ref = refs[s.info["molecule_id"]]
+                shard.set_reference(s.info["molecule_id"], ref["energy"], ref["level"])
+        shard.set_metadata(**{f"run_{k}": v for k, v in run_info.items()},
+                           recipe=store.metadata.get("recipe", ""))
+    Path(str(tmp) + ".lock").unlink(missing_ok=True)
+    os.replace(tmp, final)
+    return final
+
+
+def git_commit(folder: Path, paths: list[Path], message: str, tries: int = 5) -> bool:
+    """Commit ``paths`` (and nothing else) to the git repository holding ``folder``."""
+    rel = [str(p.resolve().relative_to(folder.resolve().parent)) for p in paths if p.exists()]
+    cwd = folder.resolve().parent
+    for attempt in range(tries):
+        add = subprocess.run(["git", "add", "--", *rel], cwd=cwd, capture_output=True, text=True)
+        if add.returncode == 0:
+            com = subprocess.run(["git", "commit", "-q", "-m", message, "--", *rel], cwd=cwd,
+                                 capture_output=True, text=True)
+            if com.returncode == 0:
+                return True
+            if "nothing" in com.stdout + com.stderr:
+                return True
+        time.sleep(2.0 * (attempt + 1))  # e.g. another git command holds index.lock
+    log.warning("could not commit %s: %s", rel, (add.stderr or "").strip())
+    return False
+
+
+def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = None,
+                 hours: float | None = None, shard_minutes: float = 20.0,
+                 commit: bool = False, progress: bool = True) -> dict:
+    """Label the campaign's molecules in order, into new shards every ``shard_minutes``.
+
+    Args:
+        workers: labeling processes (0: in this process).
+        threads: OpenMP threads per process (default: CPU count / workers).
+        hours: stop after this wall time (finished labels are kept); None: until done.
+        shard_minutes: how often finished labels become a shard (and a commit).
+        commit: commit each new shard, the prepared molecules and the card to git.
+    Returns a summary dict (new records, failures, shards written, wall time).
+    """
+    from emlpack.qm.labeling import run_labeling
+
+    folder = Path(folder)
+    settings = load_settings(folder)
+    molecules = read_molecule_table(folder)
+    recipe = settings["recipe"]
+    done = finished_keys(folder)
+    work = folder / "work" / f"labels-{socket.gethostname()}.h5"
+    t0 = time.time()
+    state = {"last": time.monotonic(), "shards": [], "since": time.time()}
+    run = {"host": socket.gethostname(), "cpus": os.cpu_count() or 1, "workers": workers,
+           "threads": threads or max(1, (os.cpu_count() or 1) // max(workers, 1))}
+    log.info("campaign %s: %d molecules, %d keys finished in shards; %s", folder,
+             len(molecules), len(done), run)
+
+    def flush(store: DatasetStore) -> None:
+        now = time.time()
+        info = dict(run, started=state["since"], ended=now, wall_s=now - state["since"])
+        shard = export_shard(folder, store, info)
+        state["since"] = now
+        if shard is None:
+            return
+        state["shards"].append(shard)
+        write_card(folder)
+        log.info("campaign %s: wrote %s", folder, shard)
+        if commit:
+            git_commit(folder, [shard, folder / "prepared", folder / "README.md"],
+                       f"{settings.get('name', folder.name)}: shard {shard.stem}")
+
+    def on_stored(store: DatasetStore) -> bool:
+        over = hours is not None and time.time() - t0 > hours * 3600.0
+        if over or time.monotonic() - state["last"] > shard_minutes * 60.0:
+            state["last"] = time.monotonic()
+            flush(store)
+        return over
+
+    sources = [(m["name"], m["smiles"]) for m in molecules]
+    summary = run_labeling(sources, work, recipe, workers=workers, progress=progress,
+                           threads=threads, prep_dir=folder / "prepared", exclude_keys=done,
+                           on_stored=on_stored)
+    with DatasetStore(work, "a") as store:
+        flush(store)
+    return {"new_records": summary.n_new, "new_failures": summary.n_failed_new,
+            "shards": [str(p) for p in state["shards"]], "wall_s": time.time() - t0}
+
+
+# ---------------------------------------------------------------------------------- card
+def campaign_statistics(folder: str | Path) -> dict:
+    """Counts, failures, wall time and throughput measured from the shards."""
+    data = read_shards(folder)
+    settings = load_settings(folder)
+    per_molecule = len(settings["recipe"].get("samples", [])) and sum(
+        int(s["count"]) for s in settings["recipe"]["samples"])
+    counts = {k: 0 for k in SPLITS}
+    configs_of: dict[str, int] = {}
+    for s in data.structures:
+        name = str(s.info["molecule_id"])
+        configs_of[name] = configs_of.get(name, 0) + 1
+        counts[data.split_of.get(name, "train")] += 1
+    mols = {k: sum(1 for m in data.molecules if m["split"] == k and m["name"] in configs_of)
+            for k in SPLITS}
+    complete = sum(1 for v in configs_of.values() if v == per_molecule)
+    wall = sum(float(m.get("run_wall_s", 0.0)) for m in data.metadata)
+    # per-configuration cost by size (atoms including the dimer probe)
+    by_size: dict[str, list[float]] = {}
+    for s in data.structures:
+        n = len(s.numbers)
+        bucket = f"{(n - 1) // 5 * 5 + 1}-{(n - 1) // 5 * 5 + 5}"
+        by_size.setdefault(bucket, []).append(float(s.info.get("wall_time", np.nan)))
+    reasons: dict[str, int] = {}
+    for f in data.failures:
+        reason = f["reason"].split(":")[0][:80]
+        reasons[reason] = reasons.get(reason, 0) + 1
+    return {
+        "n_configurations": len(data.structures),
+        "configurations_by_split": counts,
+        "molecules_by_split": mols,
+        "molecules_labeled": len(configs_of),
+        "molecules_complete": complete,
+        "molecules_listed": len(data.molecules),
+        "hydrides": sorted(h.info["molecule_id"] for h in data.hydrides["structures"])
+        if data.hydrides else [],
+        "n_failures": len(data.failures),
+        "failure_reasons": reasons,
+        "n_shards": len(data.shards),
+        "wall_hours": wall / 3600.0,
+        "configurations_per_hour": len(data.structures) / (wall / 3600.0) if wall > 0 else None,
+        "seconds_per_configuration_by_atoms": {
+            k: {"n": len(v), "median": float(np.nanmedian(v))}
+            for k, v in sorted(by_size.items(), key=lambda kv: int(kv[0].split("-")[0]))
+        },
+        "layouts": sorted({f"{m.get('run_workers')} workers x {m.get('run_threads')} threads"
+                           f" on {m.get('run_cpus')} CPUs" for m in data.metadata}),
+    }
+
+
+def write_card(folder: str | Path) -> Path:
+    """Regenerate ``FOLDER/README.md`` from ``campaign.yaml``, ``molecules.csv`` and shards."""
+    folder = Path(folder)
+    settings = load_settings(folder)
+    molecules = read_molecule_table(folder)
+    stats = campaign_statistics(folder)
+    recipe = settings["recipe"]
+    n_split = {k: sum(1 for m in molecules if m["split"] == k) for k in SPLITS}
+    samples = ", ".join(f"{s['count']} × {s['kind']}" for s in recipe["samples"])
+    test = [f"{m['name']} ({m['smiles']})" for m in molecules if m["split"] == "test"]
+    lines = [
+        f"# {settings.get('name', folder.name)}: a labeled data set of QM7 molecules",
+        "",
+        "Generated by `emlp campaign` (`emlpack.qm.campaign`); do not edit by hand.",
+        "Read it with `emlpack.data.shards.read_shards(folder)` or train on the folder",
+        "(`emlp train CONFIG data.path=FOLDER`; the split below is used by molecule).",
+        "",
+        "## Level and recipe",
+        "",
+        f"- labels: {recipe['level']} level = PBE0/aug-cc-pVTZ with density fitting",
+        "  (aug-cc-pVTZ-JKFIT), restricted Kohn-Sham, PySCF; energy, analytic forces under the",
+        "  field, Foster-Boys centres (lowest spread of"
+        f" {recipe.get('boys_starts', 3)} stabilised starts);",
+        f"- preparation (geometry and Hessian for the normal modes only, never labels):"
+        f" {recipe['prepare']['level']} (tblite), BFGS to {recipe['prepare']['fmax']} eV/Å;",
+        f"- per molecule: {samples} (the paper's 100 : 100 : 150 : 150 proportions), each"
+        f" with a random field of up to {recipe['field_max_au']} au; recipe seed"
+        f" {recipe.get('seed', 0)};",
+        "- hydride references H2, CH4, NH3, H2O at the labeling level (kind `hydride`).",
+        "",
+        "## Molecules and split",
+        "",
+        f"- source: `{settings['source']}` (QM7 SMILES), sulfur-free; rows 0-9 never labeled"
+        " (0-4 and 7: the authors' DFT data, a second test set; 5, 6, 8, 9: reserved for an"
+        " independent check);",
+        "- order: every molecule with 2-5 heavy atoms, then the IR test molecules missing"
+        f" from the source, then {settings['n_large']} molecules with 6-7 heavy atoms drawn"
+        f" with seed {settings['seed']};",
+        f"- split by molecule (fixed before labeling, `{MOLECULES_FILE}`): {n_split['train']}"
+        f" train, {n_split['val']} validation, {n_split['test']} test; the IR molecules"
+        " aziridine and 3-(methylamino)but-2-enal are in test;",
+        f"- test molecules: {', '.join(test)}.",
+        "",
+        "## Counts (measured from the shards)",
+        "",
+        f"- {stats['n_configurations']} configurations of {stats['molecules_labeled']}"
+        f" molecules ({stats['molecules_complete']} complete) out of"
+        f" {stats['molecules_listed']} listed, in {stats['n_shards']} shards;",
+        "- by split: " + ", ".join(
+            f"{k} {stats['configurations_by_split'][k]} configurations /"
+            f" {stats['molecules_by_split'][k]} molecules" for k in SPLITS) + ";",
+        f"- hydride references: {', '.join(stats['hydrides']) or 'none yet'};",
+        f"- failures: {stats['n_failures']}"
+        + ("" if not stats["failure_reasons"] else " (" + "; ".join(
+            f"{v} × {k}" for k, v in stats["failure_reasons"].items()) + ")") + ";",
+        f"- labeling wall time: {stats['wall_hours']:.2f} h"
+        + (f", {stats['configurations_per_hour']:.1f} configurations per hour"
+           if stats["configurations_per_hour"] else "")
+        + (f" ({'; '.join(stats['layouts'])})" if stats["layouts"] else "") + ".",
+        "",
+        "Seconds per configuration (one labeling process) by number of atoms (with the probe):",
+        "",
+        "| atoms | configurations | median s |",
+        "|---|---|---|",
+    ]
+    for k, v in stats["seconds_per_configuration_by_atoms"].items():
+        lines.append(f"| {k} | {v['n']} | {v['median']:.0f} |")
+    lines += ["", "## Files", "",
+              f"`{CAMPAIGN_FILE}` settings and recipe; `{MOLECULES_FILE}` the list and split;",
+              f"`{SHARD_DIR}/NNNN.h5` labels (emlpack HDF5 stores, never rewritten);",
+              "`prepared/NAME.npz` the prepared geometry and Hessian of each molecule.", ""]
+    path = folder / "README.md"
+    _write_text(path, "\n".join(lines))
+    return path
+
+
+def _write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
