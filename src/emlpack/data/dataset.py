@@ -23,6 +23,7 @@ import torch
 
 from emlpack.data.augment import AugmentationConfig, augment
 from emlpack.data.references import HYDRIDES, HydrideReference
+from emlpack.data.shards import is_sharded, read_shards
 from emlpack.nn.graph import Graph, collate
 from emlpack.structure import Structure
 
@@ -49,13 +50,17 @@ class DataError(ValueError):
 
 
 def load_data(path: str | Path) -> tuple[list[Structure], dict | None]:
-    """Structures of an extxyz file or HDF5 store, and the hydrides found in a store.
+    """Structures of an extxyz file, HDF5 store or data-set folder of shards, and the hydrides
+    found in a store or folder.
 
     Returns ``(structures, hydrides)`` where ``hydrides`` is ``None`` or a dict with
     ``structures`` (in the order of :data:`HYDRIDES`) and ``energies`` (eV)."""
     path = Path(path)
     if not path.exists():
         raise DataError(f"{path}: no such data file")
+    if is_sharded(path):
+        data = read_shards(path)
+        return data.structures, data.hydrides
     if path.suffix in (".h5", ".hdf5"):
         from emlpack.data.store import DatasetStore
 
@@ -85,7 +90,8 @@ def split_indices(
 
     ``by="molecule"``: whole molecules go to one subset (unseen molecules in validation and
     test; every non-zero fraction gets at least one molecule when there are enough).
-    ``by="configuration"``: each molecule's configurations are split with the fractions."""
+    ``by="configuration"``: each molecule's configurations are split with the fractions.
+    (A data-set folder's own split by molecule is :meth:`ShardedData.split_indices`.)"""
     ids = np.asarray(list(molecule_ids), dtype=object)
     f = np.asarray(fractions, dtype=float)
     if len(f) != 3 or np.any(f < 0) or f.sum() <= 0:

@@ -19,10 +19,11 @@ from emlpack.train.loss import LossWeights
 
 DEFAULTS: dict = {
     "data": {
-        "path": None,  # extxyz file or HDF5 store (.h5)
+        "path": None,  # extxyz file, HDF5 store (.h5) or data-set folder of shards
         "hydrides": None,  # folder with H2.xyz, CH4.xyz, ... and energies_*_hartree.txt
         "reference": "auto",  # auto | hydrides | constant
-        "split": "molecule",  # molecule | configuration
+        "split": "auto",  # auto (card of a data-set folder, else molecule) | molecule |
+        # configuration | card
         "fractions": [0.9, 0.05, 0.05],
         "split_seed": 0,
         "num_workers": 0,
@@ -104,8 +105,9 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
 
 def validate(cfg: dict) -> None:
     d, t = cfg["data"], cfg["training"]
-    if d["split"] not in ("molecule", "configuration"):
-        raise ConfigError(f"data.split must be 'molecule' or 'configuration', got {d['split']!r}")
+    if d["split"] not in ("auto", "molecule", "configuration", "card"):
+        raise ConfigError(f"data.split must be auto, molecule, configuration or card, got"
+                          f" {d['split']!r}")
     if d["reference"] not in ("auto", "hydrides", "constant"):
         raise ConfigError(f"data.reference must be auto, hydrides or constant, got"
                           f" {d['reference']!r}")

@@ -45,6 +45,7 @@ from emlpack.data.references import (
     ReferenceError,
     load_hydrides,
 )
+from emlpack.data.shards import is_sharded, read_shards
 from emlpack.nn.checkpoint import read_checkpoint, save_model
 from emlpack.nn.potential import EMLP, ModelConfig
 from emlpack.train.config import dump_config
@@ -95,8 +96,15 @@ class Trainer:
         if not d["path"]:
             raise ValueError("data.path is not set (extxyz file or HDF5 store)")
         self.structures, store_hydrides = load_data(d["path"])
-        ids = [molecule_id(s) for s in self.structures]
-        self.split = split_indices(ids, d["fractions"], d["split"], d["split_seed"])
+        sharded = is_sharded(d["path"])
+        if d["split"] == "card" and not sharded:
+            raise ValueError(f"{d['path']}: data.split=card needs a data-set folder with a card")
+        if d["split"] in ("auto", "card") and sharded:
+            self.split = read_shards(d["path"]).split_indices()
+        else:
+            ids = [molecule_id(s) for s in self.structures]
+            by = "molecule" if d["split"] == "auto" else d["split"]
+            self.split = split_indices(ids, d["fractions"], by, d["split_seed"])
         if len(self.split["train"]) == 0:
             raise ValueError(f"{d['path']}: the training split is empty")
         self.reference = build_reference(cfg, self.structures, self.split["train"],

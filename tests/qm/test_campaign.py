@@ -1,0 +1,146 @@
+"""Labeling campaigns: the molecule list and split, immutable shards, resuming from shards on
+a fresh machine, labels interleaved with preparation, and the committed mini-eQM7 list."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+import yaml
+
+from emlpack.data.dataset import load_data
+from emlpack.data.shards import finished_keys, read_molecule_table, read_shards, shard_paths
+from emlpack.data.store import DatasetStore
+from emlpack.qm import campaign
+from tests.conftest import ROOT, shared_path
+
+MINI_EQM7 = ROOT / "datasets" / "mini-eqm7"
+#: QM7 rows 5, 6, 8, 9: acetaldehyde, dimethyl ether, propane, propene
+RESERVED = {"CC=O", "COC", "CCC", "C=CC"}
+
+
+def test_selection_rules():
+    path = shared_path("data/qm7_smiles.csv")
+    mols = campaign.select_molecules(path, seed=0, n_large=40)
+    again = campaign.select_molecules(path, seed=0, n_large=40)
+    assert [(m["name"], m["split"]) for m in mols] == [(m["name"], m["split"]) for m in again]
+    names = [m["name"] for m in mols]
+    assert len(set(names)) == len(names)
+    for row in range(10):  # the paper's validation molecules are never listed
+        assert f"qm7-{row:04d}" not in names
+    canon = {m["canonical"]: m for m in mols}
+    assert not RESERVED & set(canon)
+    assert all("S" not in m["canonical"].replace("Si", "") for m in mols)
+    heavy = [m["n_heavy"] for m in mols]
+    n_small = sum(1 for h in heavy if h <= 5)
+    assert all(2 <= h <= 5 for h in heavy[:n_small]) and n_small > 150
+    assert all(h in (6, 7) for h in heavy[n_small:])
+    n_extra = sum(1 for m in mols if m["name"].startswith("extra-"))  # IR molecule not in QM7
+    assert len(heavy) - n_small == 40 + n_extra and n_extra <= 1
+    for smiles in campaign.IR_TEST_SMILES.values():  # the IR molecules are test molecules
+        assert canon[campaign.canonical(smiles)]["split"] == "test"
+    counts = {k: sum(1 for m in mols if m["split"] == k) for k in ("train", "val", "test")}
+    assert counts["test"] == round(0.05 * len(mols)) and counts["val"] == round(0.05 * len(mols))
+    other = campaign.select_molecules(path, seed=1, n_large=40)
+    assert [m["name"] for m in other] != names  # the seed draws another sample
+
+
+def test_committed_mini_eqm7_has_no_reserved_molecule():
+    """The committed list and every committed shard (however many) avoid rows 0-9."""
+    rows = read_molecule_table(MINI_EQM7)
+    listed = {m["name"]: m for m in rows}
+    canon = {campaign.canonical(m["smiles"]) for m in rows}
+    assert not RESERVED & canon
+    assert not {f"qm7-{i:04d}" for i in range(10)} & set(listed)
+    for label, smiles in campaign.IR_TEST_SMILES.items():
+        match = [m for m in rows if campaign.canonical(m["smiles"]) == campaign.canonical(smiles)]
+        assert len(match) == 1 and match[0]["split"] == "test", label
+    from rdkit import Chem
+
+    data = read_shards(MINI_EQM7)
+    for s in data.structures:
+        name = s.info["molecule_id"]
+        assert name in listed, name
+        mol = Chem.AddHs(Chem.MolFromSmiles(listed[name]["smiles"]))
+        own = sorted(a.GetAtomicNum() for a in mol.GetAtoms())
+        # the molecule's own atoms come first (a dimer probe follows)
+        assert sorted(s.numbers[: len(own)].tolist()) == own, s.info["key"]
+        assert s.info["level"] == "pbe0/aug-cc-pvtz"
+    for h in (data.hydrides or {}).get("structures", []):
+        assert h.info["level"] == "pbe0/aug-cc-pvtz"
+
+
+def _tiny_campaign(folder, smiles=("C=O", "CO")):
+    """A two-molecule campaign at the tiny level (seconds per configuration)."""
+    folder.mkdir()
+    recipe = campaign.campaign_recipe(samples_per_molecule=4)
+    recipe.update(level="tiny", boys_starts=1, hydrides=False)
+    settings = {"name": "tiny", "source": "test", "seed": 0, "n_large": 0, "recipe": recipe}
+    (folder / campaign.CAMPAIGN_FILE).write_text(yaml.safe_dump(settings))
+    with (folder / "molecules.csv").open("w") as fh:
+        w = csv.writer(fh)
+        w.writerow(["name", "source", "smiles", "n_heavy", "split"])
+        for i, smi in enumerate(smiles):
+            w.writerow([f"m{i}", "test", smi, 2, ["train", "test"][i % 2]])
+    return folder
+
+
+def test_campaign_resumes_from_shards_on_a_fresh_machine(tmp_path, monkeypatch):
+    folder = _tiny_campaign(tmp_path / "c")
+    # stop after the first stored record (as a session ending), then resume elsewhere
+    out = campaign.run_campaign(folder, workers=0, hours=0.0, progress=False)
+    assert out["new_records"] == 1 and len(out["shards"]) == 1
+    first = finished_keys(folder)
+    assert len(first) == 1
+    shard0 = shard_paths(folder)[0].read_bytes()
+    import shutil
+
+    shutil.rmtree(folder / "work")  # a fresh machine: only the committed files remain
+    out = campaign.run_campaign(folder, workers=0, progress=False)
+    assert out["new_records"] == 7
+    assert shard_paths(folder)[0].read_bytes() == shard0  # a shard is never rewritten
+    keys = finished_keys(folder)
+    assert first < keys and len(keys) == 8
+    out = campaign.run_campaign(folder, workers=0, progress=False)
+    assert out["new_records"] == 0 and out["shards"] == []
+    data = read_shards(folder)
+    assert len(data.structures) == 8
+    split = data.split_indices()
+    assert {data.structures[i].info["molecule_id"] for i in split["test"]} == {"m1"}
+    assert len(split["train"]) == 4 and len(split["val"]) == 0
+    structures, hydrides = load_data(folder)  # what `emlp train data.path=FOLDER` reads
+    assert len(structures) == 8 and hydrides is None
+    card = (folder / "README.md").read_text()
+    assert "8 configurations of 2 molecules (2 complete)" in card
+
+
+def test_labels_are_interleaved_with_preparation(tmp_path):
+    """The first label is stored before the second molecule is prepared."""
+    from emlpack.qm.labeling import run_labeling
+
+    folder = _tiny_campaign(tmp_path / "c")
+    settings = campaign.load_settings(folder)
+    prepared_at_first_record = []
+
+    def on_stored(store):
+        if not prepared_at_first_record:
+            prepared_at_first_record.extend(
+                sorted(p.stem for p in (folder / "prepared").glob("m*.npz")))
+        return False
+
+    run_labeling([("m0", "C=O"), ("m1", "CO")], tmp_path / "s.h5", settings["recipe"],
+                 workers=0, progress=False, prep_dir=folder / "prepared", on_stored=on_stored)
+    assert prepared_at_first_record == ["m0"]
+    with DatasetStore(tmp_path / "s.h5") as st:
+        assert len(st) == 8
+        with np.load(folder / "prepared" / "m1.npz") as d:
+            assert str(d["level"]) == "gfn2-xtb"
+            hess = d["hessian"]
+            assert np.allclose(hess, hess.T, atol=1e-3 * np.abs(hess).max())
+
+
+def test_campaign_init_refuses_to_overwrite(tmp_path):
+    folder = _tiny_campaign(tmp_path / "c")
+    with pytest.raises(Exception, match="exists already"):
+        campaign.init_campaign(folder, tmp_path / "unused.csv")
