@@ -1,0 +1,14 @@
+"""The one base class of emlpack's errors.
+
+Every error a user can cause (a bad file, model, structure or argument) derives from
+:class:`EmlpackError`; its message is one line naming the file, the frame and the problem, so
+the command line prints it without a traceback. Each area keeps its own subclass (e.g.
+``StructureError``, ``StoreError``), which also derives from the matching built-in exception
+(``ValueError``, ``RuntimeError``) so existing ``except`` clauses keep working.
+"""
+
+from __future__ import annotations
+
+
+class EmlpackError(Exception):
+    """Base class of every emlpack error (user errors and failed computations)."""
