@@ -1,9 +1,12 @@
 """Agreement with the authors' TensorFlow reference (../shared/fixtures/reference_tf).
 
 These are the most important tests of the suite: the same weights must give the same
-energies, per-particle energies, forces, stress and Hessians to 1e-8 relative or better
-(float64). The reference details we mirror: molmod constants (units.py), the 1e-10 Å in the
-Coulomb denominator (ModelConfig.coulomb_eps), sqrt(|d|^2 + 1e-20) distances.
+energies, per-particle energies, forces, stress and Hessians (float64). Each quantity has its
+own relative tolerance (`RTOL`), about 10x above the worst disagreement measured on these
+fixtures, relative to the largest |value| of the expected array (no floor: a field energy of
+1e-3 eV is checked relative to 1e-3 eV). The reference details we mirror: molmod constants
+(units.py), the 1e-10 Å in the Coulomb denominator (ModelConfig.coulomb_eps),
+sqrt(|d|^2 + 1e-20) distances.
 """
 
 from __future__ import annotations
@@ -22,7 +25,23 @@ from emlpack.units import EV_PER_A3_IN_GPA, FIELD_AU_IN_V_PER_A
 from tests.conftest import shared_path
 
 FIX = "fixtures/reference_tf/"
-RTOL = 1e-8
+#: relative tolerance per quantity; measured worst agreement (2026-11-23) in the comments
+RTOL = {
+    "energy": 5e-12,  # 1.0e-12 (molecules: the absolute error of E_lr, ~1e-12 eV)
+    "energy_short_range": 1e-13,  # 6e-16
+    # the molecular electrostatic energy is the ~1% remainder of cancelling pair and self
+    # terms: 3.3e-11 of its own size (1.3e-12 eV absolute)
+    "energy_long_range": 1e-10,
+    "energy_field": 5e-12,  # 4.8e-13
+    "atomic_energies": 1e-13,  # 2e-15
+    "forces": 1e-12,  # 5.3e-14
+    "pair_forces": 1e-12,  # 9.5e-14
+    "virial": 1e-12,  # 6.7e-14
+    "stress": 1e-12,  # 6.7e-14
+    "gradient": 1e-13,  # 5e-15 (extended gradient)
+    "hessian": 1e-13,  # 9e-16 (whole matrix)
+    "hessian_block": 1e-12,  # 1.2e-13 (frac-cell block, relative to the block's own scale)
+}
 
 
 def load_model(size: str, dtype=torch.float64):
@@ -59,12 +78,18 @@ def fixture_structure(d, p: str) -> Structure:
     )
 
 
-def assert_close(actual, expected, rtol=RTOL, what=""):
-    """|actual - expected| <= rtol * max|expected| (elementwise, scale of the whole array)."""
+def assert_close(actual, expected, quantity: str, what="", scale=None):
+    """|actual - expected| <= RTOL[quantity] * scale, scale = max|expected| unless given
+    (elementwise, scale of the whole array, not floored)."""
+    rtol = RTOL[quantity]
     actual, expected = np.asarray(actual, float), np.asarray(expected, float)
-    scale = max(np.abs(expected).max(), 1.0)
+    assert actual.shape == expected.shape, f"{what}: shape {actual.shape} vs {expected.shape}"
+    scale = np.abs(expected).max() if scale is None else scale
     err = np.abs(actual - expected).max()
-    assert err <= rtol * scale, f"{what}: max error {err:.3e} vs scale {scale:.3e}"
+    assert err <= rtol * scale, (
+        f"{what or quantity}: max error {err:.3e} = {err / max(scale, 1e-300):.2e} of the "
+        f"scale {scale:.3e} (rtol {rtol:.0e})"
+    )
 
 
 @pytest.mark.parametrize("slot", range(12))
@@ -74,13 +99,13 @@ def test_molecules_small(small_model, molecules, slot):
     np.testing.assert_array_equal(s.all_numbers, molecules[p + "all_numbers"])
     np.testing.assert_array_equal(s.charges, molecules[p + "charges"])
     r = small_model.evaluate(s)
-    assert_close(r["energy"], molecules[p + "energy"], what="energy")
-    assert_close(r["energy_short_range"], molecules[p + "energy_shortrange"], what="E_sr")
-    assert_close(r["energy_long_range"], molecules[p + "energy_longrange"], what="E_lr")
-    assert_close(r["energy_field"], molecules[p + "energy_field"], what="E_field")
-    assert_close(r["atomic_energies"], molecules[p + "atomic_energies"], what="atomic")
-    assert_close(r["forces"], molecules[p + "core_forces"], what="core forces")
-    assert_close(r["pair_forces"], molecules[p + "pair_forces"], what="pair forces")
+    assert_close(r["energy"], molecules[p + "energy"], "energy")
+    assert_close(r["energy_short_range"], molecules[p + "energy_shortrange"], "energy_short_range")
+    assert_close(r["energy_long_range"], molecules[p + "energy_longrange"], "energy_long_range")
+    assert_close(r["energy_field"], molecules[p + "energy_field"], "energy_field")
+    assert_close(r["atomic_energies"], molecules[p + "atomic_energies"], "atomic_energies")
+    assert_close(r["forces"], molecules[p + "core_forces"], "forces")
+    assert_close(r["pair_forces"], molecules[p + "pair_forces"], "pair_forces")
 
 
 def test_molecules_small_batched(small_model, molecules):
@@ -90,9 +115,9 @@ def test_molecules_small_batched(small_model, molecules):
     forces = out["forces"].detach().split([s.n_cores + s.n_pairs for s in structures])
     for k, f in enumerate(forces):
         p = f"c{k:02d}_"
-        assert_close(out["energy"][k].item(), molecules[p + "energy"], what=p)
+        assert_close(out["energy"][k].item(), molecules[p + "energy"], "energy", what=p)
         ref = np.concatenate([molecules[p + "core_forces"], molecules[p + "pair_forces"]])
-        assert_close(f.numpy(), ref, what=p + "forces")
+        assert_close(f.numpy(), ref, "pair_forces", what=p + "forces")
 
 
 @pytest.mark.parametrize("slot", [0, 6, 8])
@@ -102,7 +127,7 @@ def test_molecular_hessian(small_model, molecules, slot):
     h = h.numpy()
     h[-3:] *= FIELD_AU_IN_V_PER_A  # field rows/columns in atomic units, as the reference
     h[:, -3:] *= FIELD_AU_IN_V_PER_A
-    assert_close(h, molecules[p + "hessian"], what="hessian")
+    assert_close(h, molecules[p + "hessian"], "hessian")
 
 
 @pytest.mark.parametrize("conf", range(4))
@@ -110,18 +135,19 @@ def test_periodic_small(small_model, periodic, conf):
     p = f"p{conf}_"
     s = fixture_structure(periodic, p)
     r = small_model.evaluate(s)
-    assert_close(r["energy"], periodic[p + "energy"], what="energy")
-    assert_close(r["energy_short_range"], periodic[p + "energy_shortrange"], what="E_sr")
-    assert_close(r["energy_long_range"], periodic[p + "energy_longrange"], what="E_lr")
-    assert_close(r["energy_field"], periodic[p + "energy_field"], what="E_field")
-    assert_close(r["atomic_energies"], periodic[p + "atomic_energies"], what="atomic")
-    assert_close(r["forces"], periodic[p + "core_forces"], what="core forces")
-    assert_close(r["pair_forces"], periodic[p + "pair_forces"], what="pair forces")
-    assert_close(r["virial"], periodic[p + "vtens"], what="vtens")
+    assert_close(r["energy"], periodic[p + "energy"], "energy")
+    assert_close(r["energy_short_range"], periodic[p + "energy_shortrange"], "energy_short_range")
+    assert_close(r["energy_long_range"], periodic[p + "energy_longrange"], "energy_long_range")
+    assert_close(r["energy_field"], periodic[p + "energy_field"], "energy_field")
+    assert_close(r["atomic_energies"], periodic[p + "atomic_energies"], "atomic_energies")
+    assert_close(r["forces"], periodic[p + "core_forces"], "forces")
+    assert_close(r["pair_forces"], periodic[p + "pair_forces"], "pair_forces")
+    assert_close(r["virial"], periodic[p + "vtens"], "virial")
     assert_close(
-        r["virial_including_field"], periodic[p + "vtens_including_field"], what="vtens+field"
+        r["virial_including_field"], periodic[p + "vtens_including_field"], "virial",
+        what="vtens+field",
     )
-    assert_close(r["stress"] * EV_PER_A3_IN_GPA, periodic[p + "stress_GPa"], what="stress")
+    assert_close(r["stress"] * EV_PER_A3_IN_GPA, periodic[p + "stress_GPa"], "stress")
 
 
 @pytest.mark.parametrize("conf", range(4))
@@ -147,14 +173,16 @@ def test_extended_hessian_beta_glycine(small_model, periodic):
     h[-3:] *= FIELD_AU_IN_V_PER_A
     h[:, -3:] *= FIELD_AU_IN_V_PER_A
     grad[-3:] *= FIELD_AU_IN_V_PER_A
-    assert_close(grad, periodic["p0_gradient_extended"], what="gradient")
+    assert_close(grad, periodic["p0_gradient_extended"], "gradient")
     ref = periodic["p0_hessian_extended"]
-    assert_close(h, ref, what="hessian")
+    assert_close(h, ref, "hessian")
     # block by block, relative to each block's own scale
     blocks = {"frac": slice(0, 150), "cell": slice(150, 159), "field": slice(159, 162)}
     for a, sa in blocks.items():
         for b, sb in blocks.items():
-            assert_close(h[sa, sb], ref[sa, sb], rtol=1e-8, what=f"{a}-{b}")
+            # (the field-field block is zero: fixed particles, energy linear in the field)
+            assert_close(h[sa, sb], ref[sa, sb], "hessian_block", what=f"{a}-{b}",
+                         scale=np.abs(ref[sa, sb]).max() or np.abs(ref).max())
 
 
 @pytest.fixture(scope="module")
@@ -169,19 +197,27 @@ def test_paper_size_model(paper, slot):
     p = f"P{slot:02d}_"
     s = fixture_structure(paper, p)
     r = model.evaluate(s)
-    assert_close(r["energy"], paper[p + "energy"], what="energy")
-    assert_close(r["energy_short_range"], paper[p + "energy_shortrange"], what="E_sr")
-    assert_close(r["atomic_energies"], paper[p + "atomic_energies"], what="atomic")
-    assert_close(r["forces"], paper[p + "core_forces"], what="core forces")
-    assert_close(r["pair_forces"], paper[p + "pair_forces"], what="pair forces")
-    # float32 (electrostatics kept in float64): closer to the float64 truth than the
-    # reference's own float32 run, whose spread is up to 4e-5 eV
+    assert_close(r["energy"], paper[p + "energy"], "energy")
+    assert_close(r["energy_short_range"], paper[p + "energy_shortrange"], "energy_short_range")
+    assert_close(r["energy_long_range"], paper[p + "energy_longrange"], "energy_long_range")
+    assert_close(r["energy_field"], paper[p + "energy_field"], "energy_field")
+    assert_close(r["atomic_energies"], paper[p + "atomic_energies"], "atomic_energies")
+    assert_close(r["forces"], paper[p + "core_forces"], "forces")
+    assert_close(r["pair_forces"], paper[p + "pair_forces"], "pair_forces")
+    # float32 (electrostatics kept in float64): at least 10x closer to the float64 truth than
+    # the reference's own float32 run (docs/architecture.md; measured 22x, 36x, 59x, 9000x on
+    # these four frames, whose reference float32 errors are 5e-6 to 4e-5 eV)
     r32 = model.to(torch.float32).evaluate(s, dtype=torch.float32)
     model.to(torch.float64)
     ref32_error = abs(paper[p + "energy_f32"] - paper[p + "energy"])
-    assert abs(r32["energy"] - paper[p + "energy"]) < max(5e-6, ref32_error)
-    assert np.abs(r32["forces"] - paper[p + "core_forces"]).max() < 1e-5
-    assert np.abs(r32["pair_forces"] - paper[p + "pair_forces"]).max() < 1e-5
+    assert ref32_error > 1e-6  # the reference's float32 error is resolved by the fixture
+    assert abs(r32["energy"] - paper[p + "energy"]) * 10 < ref32_error
+    # forces: below 1e-5 eV/Å and at least 2x closer than the reference's float32 forces
+    # (measured: ours 3e-7 to 4e-6 eV/Å, the reference's 1e-5 to 3e-5 eV/Å)
+    for ours, key in ((r32["forces"], "core_forces"), (r32["pair_forces"], "pair_forces")):
+        error = np.abs(ours - paper[p + key]).max()
+        assert error < 1e-5
+        assert error * 2 < np.abs(paper[p + key + "_f32"] - paper[p + key]).max()
 
 
 @pytest.fixture(scope="module")
@@ -250,9 +286,10 @@ def test_convert_reference_checkpoint(tmp_path, size, molecules, periodic):
         cases = [(np.load(shared_path(FIX + "paper_outputs.npz")), "P08_")]
     for data, p in cases:
         r = model.evaluate(fixture_structure(data, p))
-        assert_close(r["energy"], data[p + "energy"], what=p + "energy")
-        assert_close(r["forces"], data[p + "core_forces"], what=p + "forces")
-        assert_close(r["pair_forces"], data[p + "pair_forces"], what=p + "pair forces")
+        assert_close(r["energy"], data[p + "energy"], "energy", what=p + "energy")
+        assert_close(r["forces"], data[p + "core_forces"], "forces", what=p + "forces")
+        assert_close(r["pair_forces"], data[p + "pair_forces"], "pair_forces",
+                     what=p + "pair forces")
 
 
 @pytest.mark.parametrize("size", ["small", "paper"])
@@ -269,13 +306,15 @@ def test_frozen_inference_path(size, molecules, periodic):
         cases = [(data, f"P{k:02d}_") for k in (0, 4, 8, 10)]
     for data, p in cases:
         r = model.evaluate(fixture_structure(data, p))
-        assert_close(r["energy"], data[p + "energy"], what=p + "energy")
-        assert_close(r["atomic_energies"], data[p + "atomic_energies"], what=p + "atomic")
-        assert_close(r["forces"], data[p + "core_forces"], what=p + "forces")
-        assert_close(r["pair_forces"], data[p + "pair_forces"], what=p + "pair forces")
+        assert_close(r["energy"], data[p + "energy"], "energy", what=p + "energy")
+        assert_close(r["atomic_energies"], data[p + "atomic_energies"], "atomic_energies",
+                     what=p + "atomic")
+        assert_close(r["forces"], data[p + "core_forces"], "forces", what=p + "forces")
+        assert_close(r["pair_forces"], data[p + "pair_forces"], "pair_forces",
+                     what=p + "pair forces")
     if size == "small":
         _, h = extended_hessian(model, fixture_structure(periodic, "p0_"))
         h = h.numpy()
         h[-3:] *= FIELD_AU_IN_V_PER_A
         h[:, -3:] *= FIELD_AU_IN_V_PER_A
-        assert_close(h, periodic["p0_hessian_extended"], what="frozen hessian")
+        assert_close(h, periodic["p0_hessian_extended"], "hessian", what="frozen hessian")
