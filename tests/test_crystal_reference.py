@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from emlpack.crystal_reference import (
+    CrystalReferenceError,
     FDSettings,
-    ReferenceError,
     compute_reference_tensors,
     fractional_dipole_change,
     reference_tasks,
@@ -87,7 +87,7 @@ def test_dipole_change_ignores_images_and_order(crystal):
 def test_ambiguous_centre_mapping_is_refused(crystal):
     _, s = crystal
     far = s.pairs + 0.3 * s.cell.sum(axis=0) / np.linalg.norm(s.cell.sum(axis=0))
-    with pytest.raises(ReferenceError, match="ambiguous"):
+    with pytest.raises(CrystalReferenceError, match="ambiguous"):
         fractional_dipole_change(s, s.copy(pairs=far), max_shift=0.2)
 
 

@@ -44,8 +44,8 @@ import numpy as np
 import yaml
 
 from emlpack.crystal_reference import (
+    CrystalReferenceError,
     FDSettings,
-    ReferenceError,
     ReferenceTensors,
     reference_tasks,
     reference_tensors,
@@ -317,7 +317,7 @@ def stage_reference(study: Study) -> dict | None:
     labeled = {s.info["key"]: s for s in study.records()}
     try:
         tensors = reference_tensors(tasks, labeled, study.fd)
-    except ReferenceError as exc:
+    except CrystalReferenceError as exc:
         study.log(f"reference: not yet possible: {exc}")
         return None
     out = tensors.as_dict()

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from emlpack.errors import EmlpackError
 from emlpack.response import (
     VOIGT,
     piezo_from_voigt,
@@ -73,7 +74,7 @@ _STENCILS = {
 _AXES = "xyz"
 
 
-class ReferenceError(RuntimeError):
+class CrystalReferenceError(EmlpackError, RuntimeError):
     """Finite-difference reference tensors cannot be computed; the message says why."""
 
 
@@ -133,7 +134,8 @@ def reference_tasks(reference: Structure, settings: FDSettings = FDSettings(),
     position relaxation at fixed cell/field) for relaxed-ion tensors; expensive with DFT.
     """
     if not reference.pbc:
-        raise ReferenceError(f"{reference.source}: reference tensors need a periodic structure")
+        raise CrystalReferenceError(
+            f"{reference.source}: reference tensors need a periodic structure")
     base = _clean(reference)
     offsets, _ = _STENCILS[settings.points]
     tasks = [FDTask(f"{prefix}/zero", base, True, "zero")]
@@ -166,11 +168,11 @@ def fractional_dipole_change(reference: Structure, perturbed: Structure,
 
     Pairs are matched by a minimum-image assignment (their order and periodic image may
     change between calculations), cores by index; every fractional displacement is wrapped
-    into [-1/2, 1/2). Raises :class:`ReferenceError` when a matched particle moved farther
+    into [-1/2, 1/2). Raises :class:`CrystalReferenceError` when a matched particle moved farther
     than ``max_shift`` (Å): the mapping would then be ambiguous.
     """
     if perturbed.n_pairs != reference.n_pairs or perturbed.n_cores != reference.n_cores:
-        raise ReferenceError(
+        raise CrystalReferenceError(
             f"{perturbed.source}: {perturbed.n_cores} cores/{perturbed.n_pairs} pairs, the"
             f" reference has {reference.n_cores}/{reference.n_pairs}")
     inv_ref = np.linalg.inv(reference.cell)
@@ -185,7 +187,7 @@ def fractional_dipole_change(reference: Structure, perturbed: Structure,
     shifts = np.concatenate([dist[rows, cols],
                              np.linalg.norm(ds_cores @ reference.cell, axis=-1)])
     if shifts.size and shifts.max() > max_shift:
-        raise ReferenceError(
+        raise CrystalReferenceError(
             f"{perturbed.source}: a particle moved {shifts.max():.3f} Å from the reference"
             f" (> {max_shift} Å): polarization change ambiguous; use a smaller step")
     return PAIR_CHARGE * ds_pairs.sum(axis=0) + reference.core_charges @ ds_cores
@@ -246,11 +248,12 @@ def reference_tensors(tasks: list[FDTask], labeled: dict[str, Structure],
     """Tensors from the labeled results (``labeled[task.key]``) of :func:`reference_tasks`."""
     missing = [t.key for t in tasks if t.key not in labeled]
     if missing:
-        raise ReferenceError(f"{len(missing)} finite-difference calculations missing: {missing}")
+        raise CrystalReferenceError(
+            f"{len(missing)} finite-difference calculations missing: {missing}")
     zero_task = next(t for t in tasks if t.kind == "zero")
     ref = labeled[zero_task.key]
     if ref.stress is None:
-        raise ReferenceError(f"{ref.source}: the unperturbed calculation has no stress")
+        raise CrystalReferenceError(f"{ref.source}: the unperturbed calculation has no stress")
     offsets, weights = _STENCILS[settings.points]
     weight_of = dict(zip(offsets.tolist(), weights.tolist(), strict=True))
     cell, volume = ref.cell, ref.volume
@@ -270,7 +273,7 @@ def reference_tensors(tasks: list[FDTask], labeled: dict[str, Structure],
             dp_dfield[:, t.index] += w * dp / settings.field_step
         else:
             if out.stress is None:
-                raise ReferenceError(f"{t.key}: strained calculation without stress")
+                raise CrystalReferenceError(f"{t.key}: strained calculation without stress")
             dsigma[:, :, t.index] += w * out.stress / settings.strain_step
             dp_dstrain[:, t.index] += w * dp / settings.strain_step
     # dielectric: dP_i/dE_j = (1/V) sum_a A_ai dp_a/dE_j (fixed cell)

@@ -63,6 +63,7 @@ from ase.md.velocitydistribution import (
 )
 from ase.md.verlet import VelocityVerlet
 
+from emlpack.errors import EmlpackError
 from emlpack.io.extxyz import atomic_write, write_structures
 from emlpack.nn.checkpoint import load_model
 from emlpack.nn.potential import EMLP
@@ -87,7 +88,7 @@ SUMMARY = "summary.json"
 _CURVATURE_FLOOR = 1e-2
 
 
-class MDWatchdogError(RuntimeError):
+class MDWatchdogError(EmlpackError, RuntimeError):
     """The pairs could not be relaxed at some MD step, even from the fallback guesses."""
 
 

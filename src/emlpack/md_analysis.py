@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from emlpack.errors import EmlpackError
+
 #: jump (eV per atom) below which a run is stable (paper)
 STABLE_MAX_JUMP = 5e-4
 #: jump (eV per atom) above which a run is unstable (paper)
@@ -62,7 +64,7 @@ __all__ = [
 ]
 
 
-class TrajectoryAnalysisError(ValueError):
+class TrajectoryAnalysisError(EmlpackError, ValueError):
     """Unusable input for the analysis; the message names the file and frame."""
 
 

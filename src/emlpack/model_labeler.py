@@ -20,13 +20,14 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
+from emlpack.errors import EmlpackError
 from emlpack.nn.potential import EMLP
 from emlpack.relax import RelaxOptions, relax_pairs
 from emlpack.response import schur_complement
 from emlpack.structure import Structure
 
 
-class ModelLabelingError(RuntimeError):
+class ModelLabelingError(EmlpackError, RuntimeError):
     """The electron pairs of a structure could not be relaxed with the model."""
 
 

@@ -17,13 +17,15 @@ from dataclasses import field as _field
 
 import numpy as np
 
+from emlpack.errors import EmlpackError
+
 PAIR_CHARGE = -2.0
 #: Particle number used for electron pairs (the reference's "Es", Z = 99).
 PAIR_NUMBER = 99
 MAX_SUPPORTED_Z = 18
 
 
-class StructureError(ValueError):
+class StructureError(EmlpackError, ValueError):
     """Invalid or inconsistent structure input; the message names file, frame and problem."""
 
 

@@ -10,7 +10,7 @@ from emlpack.data.dataset import make_batch
 from emlpack.data.references import (
     ConstantReference,
     HydrideReference,
-    ReferenceError,
+    HydrideReferenceError,
     hydride_coefficients,
     load_hydrides,
     reference_from_metadata,
@@ -37,7 +37,7 @@ def test_hydride_coefficients_balance_cores_and_pairs():
     # ethanol C2H6O = 2 CH4 + H2O - 2 H2
     np.testing.assert_allclose(hydride_coefficients(np.array([6, 6, 8] + [1] * 6)),
                                [-2, 2, 0, 1])
-    with pytest.raises(ReferenceError, match="Z=\\[16\\]"):
+    with pytest.raises(HydrideReferenceError, match="Z=\\[16\\]"):
         hydride_coefficients(np.array([16, 1, 1]))
 
 

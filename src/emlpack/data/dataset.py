@@ -24,6 +24,7 @@ import torch
 from emlpack.data.augment import AugmentationConfig, augment
 from emlpack.data.references import HYDRIDES, HydrideReference
 from emlpack.data.shards import is_sharded, read_shards
+from emlpack.errors import EmlpackError
 from emlpack.nn.graph import Graph, collate
 from emlpack.structure import Structure
 
@@ -45,7 +46,7 @@ def molecule_id(s: Structure) -> str:
     return str(mid) if mid not in (None, "") else formula(s.numbers)
 
 
-class DataError(ValueError):
+class DataError(EmlpackError, ValueError):
     """Unusable training data; the message names the file."""
 
 

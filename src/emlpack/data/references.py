@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from emlpack.errors import EmlpackError
 from emlpack.structure import Structure
 from emlpack.units import HARTREE
 
@@ -28,7 +29,7 @@ HYDRIDES = ("H2", "CH4", "NH3", "H2O")
 _HCNO = {1, 6, 7, 8}
 
 
-class ReferenceError(ValueError):
+class HydrideReferenceError(EmlpackError, ValueError):
     """A structure the reference cannot describe (element, charge, missing hydride)."""
 
 
@@ -38,11 +39,11 @@ def hydride_coefficients(numbers: np.ndarray, source: str = "<memory>",
     z = np.asarray(numbers)
     unknown = sorted(set(z.tolist()) - _HCNO)
     if unknown:
-        raise ReferenceError(
+        raise HydrideReferenceError(
             f"{source}: element(s) Z={unknown} have no hydride reference (only H, C, N, O)"
         )
     if abs(charge) > 1e-12:
-        raise ReferenceError(f"{source}: charged molecule (charge {charge:g}) has no hydride"
+        raise HydrideReferenceError(f"{source}: charged molecule (charge {charge:g}) has no hydride"
                              " reference; use reference: constant")
     n = {e: int(np.sum(z == e)) for e in _HCNO}
     c_h2 = 0.5 * (n[1] - 2 * n[8] - 3 * n[7] - 4 * n[6])
@@ -57,19 +58,21 @@ def load_hydrides(directory: str | Path) -> tuple[list[Structure], np.ndarray]:
     directory = Path(directory)
     files = sorted(directory.glob("energies*hartree*.txt"))
     if not files:
-        raise ReferenceError(f"{directory}: no energies_*_hartree.txt file with hydride energies")
+        raise HydrideReferenceError(
+            f"{directory}: no energies_*_hartree.txt file with hydride energies")
     table = {}
     for k, line in enumerate(files[0].read_text().splitlines()):
         parts = line.split()
         if not parts:
             continue
         if len(parts) != 2:
-            raise ReferenceError(f"{files[0]}, line {k + 1}: expected 'name energy', got {line!r}")
+            raise HydrideReferenceError(
+                f"{files[0]}, line {k + 1}: expected 'name energy', got {line!r}")
         table[parts[0]] = float(parts[1]) * HARTREE
     structures, energies = [], []
     for name in HYDRIDES:
         if name not in table:
-            raise ReferenceError(f"{files[0]}: no energy for hydride {name}")
+            raise HydrideReferenceError(f"{files[0]}: no energy for hydride {name}")
         s = read_structures(directory / f"{name}.xyz")[0]
         s.energy = table[name]
         s.info["molecule_id"] = name
@@ -91,7 +94,7 @@ class HydrideReference:
 
     def __init__(self, structures: list[Structure], energies) -> None:
         if len(structures) != len(HYDRIDES):
-            raise ReferenceError(f"need the {len(HYDRIDES)} hydrides {HYDRIDES}")
+            raise HydrideReferenceError(f"need the {len(HYDRIDES)} hydrides {HYDRIDES}")
         self.structures = list(structures)
         self.energies = np.asarray(energies, dtype=np.float64)
 
@@ -101,7 +104,7 @@ class HydrideReference:
     def target(self, s: Structure) -> float:
         """``E_DFT - E_ref(DFT hydrides)`` (eV)."""
         if s.energy is None:
-            raise ReferenceError(f"{s.source}: no energy label")
+            raise HydrideReferenceError(f"{s.source}: no energy label")
         return float(s.energy - self.coefficients(s) @ self.energies)
 
     def correct(self, energy: torch.Tensor, coefficients: torch.Tensor) -> torch.Tensor:
@@ -138,7 +141,7 @@ class ConstantReference:
 
     def target(self, s: Structure) -> float:
         if s.energy is None:
-            raise ReferenceError(f"{s.source}: no energy label")
+            raise HydrideReferenceError(f"{s.source}: no energy label")
         return float(s.energy - self.value)
 
     def correct(self, energy: torch.Tensor, coefficients: torch.Tensor) -> torch.Tensor:
@@ -159,4 +162,4 @@ def reference_from_metadata(meta: dict) -> HydrideReference | ConstantReference:
             for name, d in zip(HYDRIDES, meta["structures"], strict=True)
         ]
         return HydrideReference(structures, meta["energies"])
-    raise ReferenceError(f"unknown reference kind {meta.get('kind')!r}")
+    raise HydrideReferenceError(f"unknown reference kind {meta.get('kind')!r}")

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from emlpack.errors import EmlpackError
 from emlpack.structure import Structure
 
 FORMAT = "emlpack-store"
@@ -55,7 +56,7 @@ _FAIL_STR = ("key", "molecule_id", "kind", "reason")
 _REF_STR = ("name", "level")
 
 
-class StoreError(RuntimeError):
+class StoreError(EmlpackError, RuntimeError):
     """A problem with a dataset store file; the message names the file."""
 
 

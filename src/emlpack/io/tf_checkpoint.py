@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from emlpack.errors import EmlpackError
+
 __all__ = [
     "VARIABLE_SUFFIX",
     "BundleEntry",
@@ -76,7 +78,7 @@ DT_STRING = 7
 _NON_MODEL_ROOTS = ("save_counter", "optimizer", "_CHECKPOINTABLE_OBJECT_GRAPH")
 
 
-class TFCheckpointError(Exception):
+class TFCheckpointError(EmlpackError):
     """A file is not a readable TensorFlow checkpoint (the message names the file)."""
 
 

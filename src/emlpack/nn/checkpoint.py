@@ -15,6 +15,7 @@ from pathlib import Path
 import torch
 
 from emlpack import __version__
+from emlpack.errors import EmlpackError
 from emlpack.nn.potential import EMLP, ModelConfig
 
 FORMAT = "emlpack-model"
@@ -22,7 +23,7 @@ FORMAT_VERSION = 1
 UNITS = {"energy": "eV", "length": "Å", "force": "eV/Å", "field": "V/Å", "stress": "eV/Å^3"}
 
 
-class CheckpointError(ValueError):
+class CheckpointError(EmlpackError, ValueError):
     """A file that is not an emlpack model checkpoint (or is damaged)."""
 
 

@@ -25,6 +25,7 @@ from ase import Atoms
 from ase.calculators.calculator import Calculator, all_changes
 from ase.stress import full_3x3_to_voigt_6_stress
 
+from emlpack.errors import EmlpackError
 from emlpack.qm.crystal_sampling import _carry_pairs
 from emlpack.structure import Structure
 from emlpack.units import EV_PER_A3_IN_GPA
@@ -32,7 +33,7 @@ from emlpack.units import EV_PER_A3_IN_GPA
 Labeler = Callable[..., Structure]
 
 
-class CrystalOptimizationError(RuntimeError):
+class CrystalOptimizationError(EmlpackError, RuntimeError):
     """The optimisation could not run (bad start, labeler failure)."""
 
 

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from emlpack.errors import EmlpackError
 from emlpack.qm.levels import Level, parse_level
 from emlpack.structure import Structure, n_core_pairs
 from emlpack.units import ANGSTROM_IN_BOHR, BOHR, FIELD_AU_IN_V_PER_A, HARTREE
@@ -36,7 +37,7 @@ BOYS_SPREAD_TOL = 1e-4
 CORE_CENTRE_MAX_DISTANCE = 0.3
 
 
-class LabelingError(RuntimeError):
+class LabelingError(EmlpackError, RuntimeError):
     """A configuration could not be labeled (SCF not converged, localization failed, ...)."""
 
 

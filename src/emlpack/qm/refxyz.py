@@ -17,11 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
+from emlpack.errors import EmlpackError
 from emlpack.structure import PAIR_NUMBER
 from emlpack.units import FIELD_AU_IN_V_PER_A
 
 
-class RefXYZError(ValueError):
+class RefXYZError(EmlpackError, ValueError):
     """Bad input file; the message names the file, the frame and the problem."""
 
 

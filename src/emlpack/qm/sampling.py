@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from emlpack.errors import EmlpackError
 from emlpack.units import BOLTZMANN_EV_K, FIELD_AU_IN_V_PER_A
 
 #: ANI-style floor of the harmonic force constant (eV/Å^2 per amu), avoiding huge amplitudes
@@ -31,7 +32,7 @@ from emlpack.units import BOLTZMANN_EV_K, FIELD_AU_IN_V_PER_A
 MIN_MODE_FORCE_CONSTANT = 0.06
 
 
-class SamplingError(ValueError):
+class SamplingError(EmlpackError, ValueError):
     """A molecule or recipe cannot be sampled; the message says which and why."""
 
 

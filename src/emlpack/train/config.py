@@ -14,6 +14,7 @@ from pathlib import Path
 import yaml
 
 from emlpack.data.augment import AugmentationConfig
+from emlpack.errors import EmlpackError
 from emlpack.nn.potential import ModelConfig
 from emlpack.train.loss import LossWeights
 
@@ -49,7 +50,7 @@ DEFAULTS: dict = {
 }
 
 
-class ConfigError(ValueError):
+class ConfigError(EmlpackError, ValueError):
     """An invalid configuration file or override."""
 
 

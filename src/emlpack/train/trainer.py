@@ -42,7 +42,7 @@ from emlpack.data.dataset import Collater, load_data, make_batch, molecule_id, s
 from emlpack.data.references import (
     ConstantReference,
     HydrideReference,
-    ReferenceError,
+    HydrideReferenceError,
     load_hydrides,
 )
 from emlpack.data.shards import is_sharded, read_shards
@@ -68,11 +68,11 @@ def build_reference(cfg: dict, structures, train_idx, store_hydrides):
         kind = "hydrides" if hydrides is not None and len(compositions) > 1 else "constant"
     if kind == "hydrides":
         if hydrides is None:
-            raise ReferenceError("reference 'hydrides' needs data.hydrides (a folder) or a"
+            raise HydrideReferenceError("reference 'hydrides' needs data.hydrides (a folder) or a"
                                  " store with labelled hydrides")
         return HydrideReference(*hydrides)
     if len(compositions) > 1:
-        raise ReferenceError(
+        raise HydrideReferenceError(
             f"{d['path']}: {len(compositions)} compositions need the hydride reference"
             " (set data.hydrides); a constant reference fits one composition only")
     return ConstantReference(float(np.mean([structures[i].energy for i in train_idx])))
