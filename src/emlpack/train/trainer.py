@@ -172,6 +172,8 @@ class Trainer:
         return {"reference": self.reference.to_metadata(), "config": self.cfg,
                 "data_path": str(self.cfg["data"]["path"]),
                 "split": {k: v.tolist() for k, v in self.split.items()},
+                "elements": sorted({int(z) for i in self.split["train"]
+                                    for z in self.structures[i].numbers}),
                 "epoch": self.epoch, **extra}
 
     def training_state(self) -> dict:

@@ -1,0 +1,167 @@
+"""Trained models as users load them: one checkpoint or an ensemble, on the DFT energy scale.
+
+A checkpoint written by the trainer holds the model and, in its metadata, the reference it was
+trained against (:mod:`emlpack.data.references`) and the elements of its training set. A model
+trained with the hydride reference predicts energies relative to its *own* hydrides,
+
+    E_rel(s) = U(s) - sum_i c_i(s) U_i        (U_i: the model's hydride energies)
+
+and the DFT-scale energy a user compares with a PySCF number adds the DFT hydride energies back:
+
+    E(s) = E_rel(s) + sum_i c_i(s) E_i^DFT = U(s) + c(s) . (E^DFT - U_hyd)
+
+with ``U_hyd`` evaluated at the stored hydride cores and centres, exactly as in training and in
+the evaluation tables. For a fixed composition this is a constant shift: forces, dipoles and
+every response are unchanged. :class:`ModelEnsemble` holds one or more such members; with
+several, properties are averaged and their spread across members is the uncertainty.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from emlpack.data.references import (
+    HydrideReference,
+    hydride_coefficients,
+    reference_from_metadata,
+)
+from emlpack.errors import EmlpackError
+from emlpack.nn.checkpoint import load_model, read_checkpoint
+from emlpack.nn.potential import EMLP
+
+
+class EnsembleError(EmlpackError, ValueError):
+    """Models that cannot form an ensemble, or a structure outside what they can describe."""
+
+
+@dataclass
+class ModelMember:
+    """One trained model.
+
+    Attributes:
+        model: the network (evaluation mode).
+        reference: the training reference, or None (e.g. a converted or untrained model).
+        elements: atomic numbers of the cores in the training set, or None when unknown.
+        source: where it was loaded from.
+    """
+
+    model: EMLP
+    reference: object | None = None
+    elements: tuple[int, ...] | None = None
+    source: str = "<memory>"
+    _hydride_delta: np.ndarray | None = field(default=None, repr=False)
+
+    def hydride_delta(self) -> np.ndarray | None:
+        """``E^DFT - U_hyd`` (eV) per hydride, or None without a hydride reference."""
+        if not isinstance(self.reference, HydrideReference):
+            return None
+        if self._hydride_delta is None:
+            dtype = next(self.model.parameters()).dtype
+            u = np.array([float(self.model.evaluate(s, dtype=dtype)["energy"])
+                          for s in self.reference.structures])
+            self._hydride_delta = self.reference.energies - u
+        return self._hydride_delta
+
+    def dft_shift(self, numbers, charge: float = 0.0) -> float:
+        """Energy (eV) added to the model energy to put it on the DFT scale (0 without one)."""
+        delta = self.hydride_delta()
+        if delta is None:
+            return 0.0
+        return float(hydride_coefficients(np.asarray(numbers), self.source, charge) @ delta)
+
+    def relative_shift(self, numbers, charge: float = 0.0) -> float:
+        """Energy (eV) added to the model energy to give the trained (relative) scale."""
+        delta = self.hydride_delta()
+        if delta is None:
+            return 0.0
+        c = hydride_coefficients(np.asarray(numbers), self.source, charge)
+        return float(c @ (delta - self.reference.energies))
+
+
+def load_member(path: str | Path, dtype: torch.dtype = torch.float64) -> ModelMember:
+    """A checkpoint as a :class:`ModelMember` (reference and elements from its metadata)."""
+    meta = read_checkpoint(path).get("metadata", {}) or {}
+    model = load_model(path, dtype).eval()
+    reference = reference_from_metadata(meta["reference"]) if "reference" in meta else None
+    elements = meta.get("elements")
+    if elements is None and isinstance(reference, HydrideReference):
+        elements = (1, 6, 7, 8)
+    return ModelMember(model, reference, None if elements is None else tuple(map(int, elements)),
+                       str(path))
+
+
+class ModelEnsemble:
+    """One or more :class:`ModelMember` of the same kind (all with a hydride reference, or
+    all without); the DFT scale is used when every member has one."""
+
+    def __init__(self, members: Sequence[ModelMember], name: str = "") -> None:
+        members = list(members)
+        if not members:
+            raise EnsembleError("an ensemble needs at least one model")
+        kinds = {isinstance(m.reference, HydrideReference) for m in members}
+        if len(kinds) > 1:
+            raise EnsembleError(
+                "ensemble members disagree: some were trained with the hydride reference and"
+                " some not (" + ", ".join(m.source for m in members) + ")")
+        self.members = members
+        self.name = name or (members[0].source if len(members) == 1 else "ensemble")
+
+    def __len__(self) -> int:
+        return len(self.members)
+
+    @property
+    def dft_scale(self) -> bool:
+        """True when energies are reported on the DFT scale (hydride references known)."""
+        return isinstance(self.members[0].reference, HydrideReference)
+
+    @property
+    def elements(self) -> set[int] | None:
+        """Elements every member was trained on (None when unknown)."""
+        sets = [set(m.elements) for m in self.members if m.elements is not None]
+        return set.intersection(*sets) if sets else None
+
+    def unknown_elements(self, numbers) -> list[int]:
+        """Atomic numbers in ``numbers`` outside the training set (empty when unknown)."""
+        known = self.elements
+        if known is None:
+            return []
+        return sorted(set(np.asarray(numbers).tolist()) - known)
+
+    def to(self, dtype: torch.dtype) -> ModelEnsemble:
+        """A copy with every model in ``dtype`` (the members given are not changed)."""
+        import copy
+
+        out = []
+        for m in self.members:
+            model = m.model if next(m.model.parameters()).dtype == dtype else \
+                copy.deepcopy(m.model).to(dtype)
+            out.append(ModelMember(model.eval(), m.reference, m.elements, m.source,
+                                   m._hydride_delta))
+        return ModelEnsemble(out, self.name)
+
+
+def as_ensemble(model, dtype: torch.dtype = torch.float64) -> ModelEnsemble:
+    """An :class:`EMLP`, checkpoint path, pretrained name, folder, list of those, or an
+    ensemble, as a :class:`ModelEnsemble` in ``dtype``."""
+    if isinstance(model, ModelEnsemble):
+        return model.to(dtype)
+    if isinstance(model, EMLP):
+        return ModelEnsemble([ModelMember(model)]).to(dtype)
+    if isinstance(model, ModelMember):
+        return ModelEnsemble([model]).to(dtype)
+    if isinstance(model, (str, Path)):
+        from emlpack.pretrained import resolve_model
+
+        paths, name = resolve_model(model)
+        return ModelEnsemble([load_member(p, dtype) for p in paths], name)
+    if isinstance(model, Sequence):
+        members = []
+        for item in model:
+            members.extend(as_ensemble(item, dtype).members)
+        return ModelEnsemble(members)
+    raise EnsembleError(f"cannot use {type(model).__name__} as a model")

@@ -1,0 +1,85 @@
+"""Pretrained eMLP ensembles shipped inside the package, loaded by name.
+
+Each model is a folder ``emlpack/pretrained/NAME/`` with ``model-K.pt`` checkpoints (float32
+weights, the training reference and elements in their metadata) and ``card.md`` (level of
+theory, data, measured errors on unseen molecules, domain, citation)::
+
+    from emlpack.pretrained import load_pretrained
+    ensemble = load_pretrained("mini-eqm7")          # a ModelEnsemble
+    atoms.calc = EMLPCalculator(model="mini-eqm7")   # the same, with uncertainty
+
+Energies of these models are on the DFT scale (the DFT hydride energies added back, see
+:mod:`emlpack.ensemble`), so they compare directly with a PySCF total energy at the training
+level. Nothing here downloads anything: the files are part of the installed package.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from emlpack.errors import EmlpackError
+
+PRETRAINED_DIR = Path(__file__).resolve().parent
+#: the names emlpack knows, with what each one is (whether or not its files are installed)
+KNOWN = {
+    "mini-eqm7": "ensemble trained on the mini-eQM7 campaign data set (PBE0/aug-cc-pVTZ,"
+                 " neutral closed-shell H/C/N/O molecules up to 7 heavy atoms)",
+}
+
+
+class PretrainedError(EmlpackError, ValueError):
+    """An unknown pretrained name, or one whose files are not installed."""
+
+
+def model_files(name: str, root: Path | None = None) -> list[Path]:
+    """The checkpoints of pretrained model ``name`` (empty when none are installed)."""
+    folder = (root or PRETRAINED_DIR) / name
+    return sorted(folder.glob("model-*.pt")) if folder.is_dir() else []
+
+
+def available(root: Path | None = None) -> list[str]:
+    """Names of the pretrained models installed with this copy of emlpack."""
+    root = root or PRETRAINED_DIR
+    return sorted(p.name for p in root.iterdir() if p.is_dir() and model_files(p.name, root))
+
+
+def resolve_model(model: str | Path, root: Path | None = None) -> tuple[list[Path], str]:
+    """Checkpoint files and a display name for a MODEL argument: a checkpoint file, a folder
+    of ``*.pt`` checkpoints (an ensemble), or the name of a pretrained model."""
+    path = Path(model)
+    if path.is_file():
+        return [path], str(path)
+    if path.is_dir():
+        files = sorted(path.glob("*.pt"))
+        if not files:
+            raise PretrainedError(f"{path}: folder holds no *.pt model checkpoints")
+        return files, str(path)
+    name = str(model)
+    files = model_files(name, root)
+    if files:
+        return files, name
+    if name in KNOWN:
+        raise PretrainedError(
+            f"pretrained model {name!r} ({KNOWN[name]}) is not installed with this copy of"
+            f" emlpack (installed: {', '.join(available(root)) or 'none'})")
+    raise PretrainedError(
+        f"{name}: no such model file, folder or pretrained name (known names:"
+        f" {', '.join(KNOWN)}; installed: {', '.join(available(root)) or 'none'})")
+
+
+def load_pretrained(name: str, dtype: torch.dtype = torch.float64, root: Path | None = None):
+    """The pretrained ensemble ``name`` as a :class:`emlpack.ensemble.ModelEnsemble`."""
+    from emlpack.ensemble import ModelEnsemble, load_member
+
+    files, label = resolve_model(name, root)
+    return ModelEnsemble([load_member(p, dtype) for p in files], label)
+
+
+def model_card(name: str, root: Path | None = None) -> str:
+    """The model card (Markdown) of pretrained model ``name``."""
+    path = (root or PRETRAINED_DIR) / name / "card.md"
+    if not path.is_file():
+        raise PretrainedError(f"pretrained model {name!r} has no card installed")
+    return path.read_text()
