@@ -20,3 +20,18 @@ def shared_path(relative: str) -> Path:
             pytest.fail(message)
         pytest.skip(message)
     return path
+
+
+def require(module: str):
+    """Import an optional dependency that the project installs (an extra of pyproject.toml):
+    skip when absent on a user's machine, but fail when CI=true (`pytest.importorskip` would
+    skip silently on CI too)."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        message = f"{module} is not installed ({exc}); `make install` installs it"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(message)
+        pytest.skip(message)

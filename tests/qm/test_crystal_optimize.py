@@ -94,12 +94,13 @@ def test_resume_replays_stored_steps(setup, tmp_path):
 def test_symmetry_is_kept():
     """The paper's P2_1 beta-glycine (P2_1 at 0.01 Å, P1 at 1e-5 Å) is symmetrised, and the
     optimisation keeps P2_1 although the labeler's forces and stress carry P1 noise."""
-    pytest.importorskip("spglib")
+    from tests.conftest import require, shared_path
+
+    require("spglib")
     from ase.spacegroup.symmetrize import check_symmetry
 
     from emlpack.io.extxyz import read_structures
     from emlpack.qm.crystal_optimize import to_atoms
-    from tests.conftest import shared_path
 
     g = read_structures(shared_path("data/beta_glycine_pbe_wannier.xyz"))[0]
     assert check_symmetry(to_atoms(g), 1e-5).international == "P1"

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import pytest
 
-pytest.importorskip("pyscf")
+from tests.conftest import require
 
 
 @pytest.mark.slow
 def test_demo_pipeline_writes_the_report(tmp_path):
+    require("pyscf")
     from emlpack.demo import run_demo
 
     assert run_demo(tmp_path, minutes=0.1, n_per_molecule=2) == 0
