@@ -103,12 +103,14 @@ def test_odd_electron_count(tmp_path):
 
 def test_missing_pairs(tmp_path):
     rows = methane_rows(core_centre=False)[:-1]
-    check(write_file(tmp_path, frame_text(rows)), "3 electron pairs", "need 4")
+    check(write_file(tmp_path, frame_text(rows)), "3 electron pairs (Es rows) given, 4 needed"
+          " for a neutral CH4")
 
 
 def test_extra_pairs(tmp_path):
     rows = methane_rows() + [("Es", 3.0, 3.0, 3.0, 99)]
-    check(write_file(tmp_path, frame_text(rows)), "5 electron pairs", "need 4", "1 of them removed")
+    check(write_file(tmp_path, frame_text(rows)), "6 electron pairs (Es rows) given, 4 needed",
+          "(5 with the 1s core centres)")
 
 
 def test_efield_with_wrong_number_of_components(tmp_path):

@@ -6,14 +6,20 @@
 * :mod:`emlpack.io.tf_checkpoint`: TensorFlow checkpoints of the reference (import it directly).
 """
 
-from emlpack.io.ase_convert import atoms_to_structure, structure_to_atoms
+from emlpack.io.ase_convert import atoms_to_structure, split_pairs, structure_to_atoms
 from emlpack.io.cores import (
     CORE_TOLERANCE,
     find_core_centres,
     minimum_image_distances,
     split_core_centres,
 )
-from emlpack.io.extxyz import ExtxyzError, iread_structures, read_structures, write_structures
+from emlpack.io.extxyz import (
+    ExtxyzError,
+    iread_structures,
+    read_frame_atoms,
+    read_structures,
+    write_structures,
+)
 
 __all__ = [
     "CORE_TOLERANCE",
@@ -22,8 +28,10 @@ __all__ = [
     "find_core_centres",
     "iread_structures",
     "minimum_image_distances",
+    "read_frame_atoms",
     "read_structures",
     "split_core_centres",
+    "split_pairs",
     "structure_to_atoms",
     "write_structures",
 ]

@@ -21,7 +21,8 @@ from ase.stress import full_3x3_to_voigt_6_stress, voigt_6_to_full_3x3_stress
 from emlpack.io.cores import CORE_TOLERANCE, split_core_centres
 from emlpack.structure import PAIR_NUMBER, Structure, StructureError
 
-__all__ = ["structure_to_atoms", "atoms_to_structure", "PAIRS_KEY", "FIELD_KEY", "CHARGE_KEY"]
+__all__ = ["structure_to_atoms", "atoms_to_structure", "split_pairs", "PAIRS_KEY", "FIELD_KEY",
+           "CHARGE_KEY"]
 
 PAIRS_KEY = "electron_pairs"
 FIELD_KEY = "external_field"
@@ -53,6 +54,33 @@ def structure_to_atoms(structure: Structure) -> Atoms:
         if s.pair_forces is not None:
             atoms.calc.results["pair_forces"] = s.pair_forces.copy()
     return atoms
+
+
+def split_pairs(atoms: Atoms) -> Atoms:
+    """The cores of ``atoms`` with the electron pairs moved out of the atom list.
+
+    Files and trajectories keep the pairs as ``Es`` rows (Z = 99, the reference's convention),
+    which ASE treats as einsteinium atoms (252 amu): masses, centre of mass and viewers see
+    them. This returns a copy with only the atomic cores as atoms and the pair positions (Å)
+    in ``atoms.info["electron_pairs"]`` (the layout of :func:`structure_to_atoms`); per-atom
+    arrays and a calculator's per-atom results are cut to the cores. Atoms without ``Es``
+    rows come back as a copy.
+    """
+    is_pair = atoms.numbers == PAIR_NUMBER
+    cores = atoms[~is_pair]
+    cores.info = dict(atoms.info)
+    if is_pair.any():
+        cores.info[PAIRS_KEY] = atoms.positions[is_pair].copy()
+    if atoms.calc is not None and hasattr(atoms.calc, "results"):
+        results = {}
+        for key, value in atoms.calc.results.items():
+            arr = np.asarray(value)
+            if arr.ndim >= 1 and arr.shape[0] == len(atoms) and key not in ("stress",):
+                results[key] = arr[~is_pair]
+            else:
+                results[key] = value
+        cores.calc = SinglePointCalculator(cores, **results)
+    return cores
 
 
 def atoms_to_structure(

@@ -34,11 +34,20 @@ from ase.stress import voigt_6_to_full_3x3_stress
 from ase.utils import string2index
 
 from emlpack.io.cores import CORE_TOLERANCE, split_core_centres
-from emlpack.structure import PAIR_NUMBER, Structure, StructureError, n_core_pairs
+from emlpack.structure import (
+    MAX_SUPPORTED_Z,
+    PAIR_NUMBER,
+    Structure,
+    StructureError,
+    core_charges,
+    n_core_pairs,
+)
 from emlpack.units import FIELD_AU_IN_V_PER_A
 
 __all__ = [
     "ExtxyzError",
+    "check_pair_count",
+    "read_frame_atoms",
     "iread_structures",
     "read_structures",
     "write_structures",
@@ -67,6 +76,11 @@ _ALWAYS_RESERVED = {
     CORE_CENTRES_KEY,
     CORE_CENTRE_ROWS_KEY,
 }
+
+
+#: frame keys that hold numbers; a bare word of a free-text comment (value ``True``) is ignored
+_NUMERIC_LABELS = {"energy", "free_energy", "charge", "efield", "external_field", "stress",
+                   "dipole", "magmom"}
 
 
 class ExtxyzError(StructureError):
@@ -217,7 +231,39 @@ def _parse_frame(text: str, source: str, line: int) -> Atoms:
         ) from None
     except Exception as exc:  # ASE raises XYZError, ValueError, IndexError, TypeError
         raise ExtxyzError(f"{source} (line {line}): cannot parse the frame: {exc}") from exc
+    # a free-text comment line: ASE reads its bare words as flags (``energy`` -> True); labels
+    # come only from numeric key=value pairs, so such flags are dropped
+    for key in [k for k, v in atoms.info.items() if v is True and k in _NUMERIC_LABELS]:
+        del atoms.info[key]
+    if atoms.calc is not None:
+        results = atoms.calc.results
+        for key in [k for k, v in results.items() if v is True and k in _NUMERIC_LABELS]:
+            del results[key]
+        if not results:
+            atoms.calc = None
     return atoms
+
+
+def read_frame_atoms(path: str | os.PathLike, index: int | str = 0) -> Atoms:
+    """The raw ASE frame ``index`` (an int; negative counts from the end) of an xyz/extxyz file,
+    ``Es`` rows included; errors name the file and the frame (:class:`ExtxyzError`)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ExtxyzError(f"{path}: no such file")
+    try:
+        wanted = int(index)
+    except (TypeError, ValueError):
+        raise ExtxyzError(f"{path}: frame index must be an integer, got {index!r}") from None
+    if wanted < 0:
+        wanted += _count_frames(path)
+    n_frames = 0
+    for i, line, text in _frame_texts(path):
+        n_frames = i + 1
+        if i == wanted:
+            return _parse_frame(text, f"{path}, frame {i}", line)
+    if n_frames == 0:
+        raise ExtxyzError(f"{path}: the file contains no frames")
+    raise ExtxyzError(f"{path}: frame {index} requested but the file has {n_frames} frames")
 
 
 def _atoms_to_structure(
@@ -289,6 +335,8 @@ def _atoms_to_structure(
     core_rows = np.flatnonzero(~is_pair)
     pair_rows = np.flatnonzero(is_pair)
     centres = positions[pair_rows]
+    if len(pair_rows):
+        check_pair_count(numbers[core_rows], len(pair_rows), charge, source)
     try:
         kept, removed = split_core_centres(
             numbers[core_rows],
@@ -331,6 +379,35 @@ def _atoms_to_structure(
                 f" core centres within {core_tolerance:g} Å)"
             )
         raise ExtxyzError(message) from None
+
+
+def check_pair_count(numbers, n_given: int, charge: float, source: str) -> None:
+    """Raise :class:`ExtxyzError` unless ``n_given`` electron pairs (``Es`` rows) fit the cores
+    ``numbers`` at total ``charge``: the valence pairs, or those plus the 1s core centres.
+
+    The message says what is given and what is needed, e.g. "3 electron pairs given, 4 needed
+    for a neutral H2O".
+    """
+    numbers = np.asarray(numbers, dtype=np.int64)
+    formula = Atoms(numbers=numbers).get_chemical_formula(mode="hill")
+    what = "a neutral" if charge == 0 else f"charge {charge:+g} of"
+    valence = (float(np.sum(core_charges(numbers))) - charge) / 2.0
+    if numbers.size == 0 or numbers.min() < 1 or numbers.max() > MAX_SUPPORTED_Z:
+        return  # the element check names the problem
+    if valence != round(valence):
+        raise ExtxyzError(
+            f"{source}: odd number of valence electrons for {what} {formula}"
+            " (eMLP needs closed-shell electron pairs; is the charge right?)"
+        )
+    need = int(round(valence))
+    inner = int(n_core_pairs(numbers).sum())
+    if n_given == need or (inner and n_given == need + inner):
+        return
+    with_cores = f" ({need + inner} with the 1s core centres)" if inner else ""
+    raise ExtxyzError(
+        f"{source}: {n_given} electron pairs (Es rows) given, {need} needed for {what}"
+        f" {formula}{with_cores}"
+    )
 
 
 def _vector(value, key: str, source: str) -> np.ndarray:
