@@ -60,12 +60,17 @@ def test_box_bounds_are_respected(model, methanes):
 
 
 def test_merged_pairs_are_reported(model, methanes):
+    """A merge is forced: pairs 0 and 1 start 1e-3 Å apart and are boxed to +-0.02 Å around
+    the same point, so they end at most 0.07 Å apart (< min_pair_distance 0.1 Å)."""
     s = methanes[2]
     pairs = s.pairs.copy()
     pairs[1] = pairs[0] + 1e-3
-    r = relax_pairs(model, s.copy(pairs=pairs), max_iterations=2)[0]
-    assert not r.converged
-    assert "merged" in r.reason or "no convergence" in r.reason
+    lo, hi = pairs - 5.0, pairs + 5.0
+    lo[:2], hi[:2] = pairs[0] - 0.02, pairs[0] + 0.02
+    r = relax_pairs(model, s.copy(pairs=pairs), bounds=[(lo, hi)])[0]
+    assert np.linalg.norm(r.pairs[0] - r.pairs[1]) < 0.07
+    assert not r.converged and r.failed
+    assert "pairs 0 and 1 are" in r.reason and "(merged)" in r.reason, r.reason
 
 
 def test_escaped_pair_is_reported(model, methanes):
