@@ -120,7 +120,63 @@ def test_watchdog_stops_with_clear_error_after_writing(water, tmp_path):
     assert (tmp_path / CHECKPOINT).exists()
 
 
+#: the SIGKILLed run of test_resume_continues_the_same_trajectory, in its own process
+_KILLED_RUN = """
+import sys, time
+import numpy as np, torch
+torch.set_num_threads(1)
+from emlpack.md import run_md
+from emlpack.structure import Structure
+from tests.nn.helpers import water_molecule
+from tests.response.toy import spring_model
+start = np.load(sys.argv[1])
+s = Structure([8, 1, 1], start["positions"], start["pairs"])
+run_md(spring_model(water_molecule()), s, 20, sys.argv[2], dt_fs=0.5, temperature_K=300,
+       seed=3, checkpoint_every=5, tdamp_fs=20.0, callback=lambda *a: time.sleep(0.2))
+"""
+
+
+def _kill_md_subprocess(s, out):
+    """Start the 20-step run in a subprocess, SIGKILL it once its step-10 checkpoint exists."""
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    start = out.parent / "start.npz"
+    np.savez(start, positions=s.positions, pairs=s.pairs)
+    env = dict(os.environ, OMP_NUM_THREADS="1",
+               PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.Popen([sys.executable, "-c", _KILLED_RUN, str(start), str(out)],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 180
+    step = -1
+    while time.monotonic() < deadline and proc.poll() is None and step < 10:
+        try:
+            with np.load(out / CHECKPOINT) as data:
+                step = json.loads(str(data["meta"]))["step"]
+        except (OSError, ValueError, KeyError):
+            pass
+        time.sleep(0.02)
+    assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    proc.stderr.close()
+    assert proc.returncode == -signal.SIGKILL
+    with np.load(out / CHECKPOINT) as data:
+        step = json.loads(str(data["meta"]))["step"]
+    assert 10 <= step < 20, step  # killed mid-run, after its step-10 checkpoint
+
+
 def test_resume_continues_the_same_trajectory(water, tmp_path):
+    """10 + 10 steps, and a run SIGKILLed in a subprocess (plus a partial frame appended),
+    resumed: the trajectory equals the uninterrupted one on full-precision quantities
+    (velocities, conserved energy, the final checkpoint's positions and momenta, 1e-12), and
+    the printed positions and pairs (8 decimals) to their print precision."""
     model, s = water
     kw = dict(dt_fs=0.5, temperature_K=300, seed=3, checkpoint_every=5, tdamp_fs=20.0)
     run_md(model, s, 20, tmp_path / "full", **kw)
@@ -131,25 +187,30 @@ def test_resume_continues_the_same_trajectory(water, tmp_path):
     assert r.resumed_from == 10
     again = run_md(model, s, 20, tmp_path / "split", **kw)  # complete: nothing to do
     assert again.steps == 20 and again.evaluations_per_step == r.evaluations_per_step
-    # killed at step 13 (checkpoint at 10), with a partial frame appended to the file
-    def kill(step, atoms, calc):
-        if step == 13:
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        run_md(model, s, 20, tmp_path / "killed", callback=kill, **kw)
+    # killed by SIGKILL after its step-10 checkpoint, then a partial frame appended
+    _kill_md_subprocess(s, tmp_path / "killed")
     with open(tmp_path / "killed" / TRAJECTORY, "a") as fh:
         fh.write("7\nProperties=species:S:1:pos:R:3 step=11\nO 0.0 0.")
-    run_md(model, s, 20, tmp_path / "killed", **kw)
+    r = run_md(model, s, 20, tmp_path / "killed", **kw)
+    assert 10 <= r.resumed_from < 20
+    with np.load(tmp_path / "full" / CHECKPOINT) as data:
+        end = {k: data[k] for k in ("positions", "momenta", "eta", "p_eta")}
     for name in ("split", "killed"):
         frames = _frames(tmp_path / name)
         assert [f.info["step"] for f in frames] == list(range(21))
         for a, b in zip(full, frames, strict=True):
-            np.testing.assert_allclose(b.positions, a.positions, atol=1e-10, rtol=0)
-            np.testing.assert_allclose(b.pairs, a.pairs, atol=1e-10, rtol=0)
-            np.testing.assert_allclose(b.info["velocities"], a.info["velocities"], atol=1e-10)
+            np.testing.assert_allclose(b.positions, a.positions, atol=1e-8, rtol=0)
+            np.testing.assert_allclose(b.pairs, a.pairs, atol=1e-8, rtol=0)
+            np.testing.assert_allclose(b.info["velocities"], a.info["velocities"], atol=1e-12,
+                                       rtol=0)
             assert b.info["conserved_energy"] == pytest.approx(a.info["conserved_energy"],
-                                                               abs=1e-10)
+                                                               abs=1e-12, rel=0)
+            assert b.info["potential_energy"] == pytest.approx(a.info["potential_energy"],
+                                                               abs=1e-12, rel=0)
+        with np.load(tmp_path / name / CHECKPOINT) as data:
+            for key, value in end.items():
+                np.testing.assert_allclose(data[key], value, atol=1e-12, rtol=0, err_msg=key)
+    assert np.abs(end["positions"] - s.positions).max() > 1e-3  # the cores did move
     with pytest.raises(ValueError, match="different run"):
         run_md(model, s, 20, tmp_path / "full", **{**kw, "seed": 4})
 
