@@ -12,3 +12,11 @@ from __future__ import annotations
 
 class EmlpackError(Exception):
     """Base class of every emlpack error (user errors and failed computations)."""
+
+
+class InputError(EmlpackError, ValueError):
+    """A bad command-line argument or input (file, structure, field, run length)."""
+
+
+class ModelFileError(EmlpackError, ValueError):
+    """A model argument that is not an emlpack model file (checked before PyTorch reads it)."""

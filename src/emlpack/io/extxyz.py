@@ -47,6 +47,7 @@ from emlpack.units import FIELD_AU_IN_V_PER_A
 __all__ = [
     "ExtxyzError",
     "check_pair_count",
+    "frame_to_structure",
     "read_frame_atoms",
     "iread_structures",
     "read_structures",
@@ -264,6 +265,13 @@ def read_frame_atoms(path: str | os.PathLike, index: int | str = 0) -> Atoms:
     if n_frames == 0:
         raise ExtxyzError(f"{path}: the file contains no frames")
     raise ExtxyzError(f"{path}: frame {index} requested but the file has {n_frames} frames")
+
+
+def frame_to_structure(atoms: Atoms, source: str, convention: str = "auto",
+                       core_tolerance: float = CORE_TOLERANCE) -> Structure:
+    """One frame read by :func:`read_frame_atoms` (``Es`` rows as pairs) as a
+    :class:`Structure`, interpreted as :func:`read_structures` does; errors name ``source``."""
+    return _atoms_to_structure(atoms, convention, source, core_tolerance)
 
 
 def _atoms_to_structure(

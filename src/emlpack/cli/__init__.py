@@ -1,0 +1,67 @@
+"""The ``emlp`` command: thin wrappers over the package's modules.
+
+One module per command group (:mod:`~emlpack.cli.data`, :mod:`~emlpack.cli.training`,
+:mod:`~emlpack.cli.properties`, :mod:`~emlpack.cli.dynamics`), shared arguments and cheap
+checks in :mod:`~emlpack.cli.common`, and one error path here: every
+:class:`~emlpack.errors.EmlpackError` (bad file, model, structure or argument) is printed as one
+line, ``emlp <command>: error: <file, frame: problem>``, and exits 2 (``--debug`` shows the
+traceback); Ctrl-C exits 130 and says whether re-running the command resumes. Handlers import
+their modules lazily so that ``emlp --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from emlpack.errors import EmlpackError
+
+#: exit status of a user error (as argparse's own) and of an interrupt (128 + SIGINT)
+EXIT_USER_ERROR = 2
+EXIT_INTERRUPTED = 130
+#: file-system errors a user causes (a missing input, a folder given for a file)
+_FILE_ERRORS = (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from emlpack import __version__
+    from emlpack.cli import data, dynamics, properties, training
+
+    parser = argparse.ArgumentParser(prog="emlp", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"emlpack {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for module in (training, data, properties, dynamics):
+        for add in module.COMMANDS:
+            add(sub)
+    return parser
+
+
+def one_line(exc: BaseException) -> str:
+    """The message of ``exc`` on one line (its class name when it has none)."""
+    text = " ".join(part.strip() for part in str(exc).splitlines() if part.strip())
+    if isinstance(exc, KeyError) and len(exc.args) == 1:
+        text = str(exc.args[0])
+    return text or type(exc).__name__
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    debug = getattr(args, "debug", False)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        if debug:
+            raise
+        hint = "; re-run the same command to resume" if getattr(args, "resumable", False) else ""
+        print(f"\nemlp {args.command}: interrupted{hint}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except (EmlpackError, *_FILE_ERRORS) as exc:
+        if debug:
+            raise
+        print(f"emlp {args.command}: error: {one_line(exc)}", file=sys.stderr)
+        return EXIT_USER_ERROR
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,383 @@
+"""Arguments and checks shared by the ``emlp`` commands.
+
+Every check here is cheap and runs before any expensive work (pair guess, relaxation,
+Hessians, MD): the model file, the structure's elements, periodicity, cell, close atoms, pair
+count, the field, run lengths. A failed check raises an :class:`~emlpack.errors.EmlpackError`
+whose one-line message names the file, the frame and the problem; ``emlp`` prints it and exits 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from emlpack.errors import InputError, ModelFileError
+
+#: a field above this (V/Å; about 0.02 au, twice the training range) needs ``--force``
+MAX_FIELD_V_PER_A = 1.0
+#: atomic cores closer than this (Å) are refused
+MIN_CORE_DISTANCE = 0.5
+#: the first bytes of a zip archive, the container of every ``torch.save`` file
+ZIP_MAGIC = b"PK\x03\x04"
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows ``(default: X)`` for every option with a meaningful default."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if action.default in (None, False, argparse.SUPPRESS) or "default" in text:
+            return text
+        return super()._get_help_string(action)
+
+
+def add_parser(sub, name: str, help: str, description: str | None = None):
+    """A sub-command parser with defaults in ``--help`` and ``--debug``."""
+    p = sub.add_parser(name, help=help, description=description or help,
+                       formatter_class=HelpFormatter)
+    p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                   help="show the traceback of an error")
+    return p
+
+
+class Log:
+    """Progress and results: results go to stdout, progress to stderr unless ``quiet``."""
+
+    def __init__(self, quiet: bool = False):
+        self.quiet = quiet
+
+    def __call__(self, text: str) -> None:
+        print(text, flush=True)
+
+    def progress(self, text: str) -> None:
+        if not self.quiet:
+            print(text, file=sys.stderr, flush=True)
+
+
+# --------------------------------------------------------------------------- arguments
+def add_model_argument(p) -> None:
+    p.add_argument("model", help="emlpack model file (.pt)")
+
+
+def add_structure_arguments(p) -> None:
+    p.add_argument("structure", nargs="?",
+                   help="xyz/extxyz file; electron pairs as Es rows (guessed when absent)")
+    p.add_argument("--smiles", help="a molecule from SMILES instead of a file (RDKit 3D"
+                   " embedding, pairs guessed)")
+    p.add_argument("--index", default="0", help="frame of the structure file")
+    p.add_argument("--charge", type=float,
+                   help="total charge, e (default: the file's 'charge', the SMILES' formal"
+                   " charge, else 0)")
+    p.add_argument("--guess", default="auto", choices=["auto", "boys", "lewis"],
+                   help="electron-pair guess when the input has none")
+
+
+def add_field_arguments(p) -> None:
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--field", type=float, nargs=3, metavar=("EX", "EY", "EZ"),
+                   help="homogeneous field, V/Å (default: the structure file's, else zero)")
+    g.add_argument("--field-au", type=float, nargs=3, metavar=("EX", "EY", "EZ"),
+                   help="homogeneous field, atomic units (1 au = 51.42 V/Å)")
+    p.add_argument("--force", action="store_true",
+                   help=f"accept a field above {MAX_FIELD_V_PER_A:g} V/Å (outside training)")
+
+
+def add_threads_argument(p, default: int | None = None) -> None:
+    p.add_argument("--threads", type=int, default=default,
+                   help="torch threads" + ("" if default else " (default: torch's choice)"))
+
+
+def add_quiet_argument(p) -> None:
+    p.add_argument("--quiet", action="store_true", help="no progress messages")
+
+
+def set_threads(n: int | None) -> None:
+    """``torch.set_num_threads(n)``; idle OpenMP threads should sleep (OMP_WAIT_POLICY)."""
+    if n is None:
+        return
+    if n < 1:
+        raise InputError(f"--threads must be at least 1, got {n}")
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    import torch
+
+    torch.set_num_threads(int(n))
+
+
+def positive(value, name: str, allow_zero: bool = False) -> None:
+    """Refuse a run length, time step or count that is not positive (or negative)."""
+    if value is None:
+        return
+    bad = value < 0 if allow_zero else value <= 0
+    if bad or not np.isfinite(value):
+        need = "non-negative" if allow_zero else "positive"
+        raise InputError(f"{name} must be {need}, got {value:g}")
+
+
+def settings(args) -> dict:
+    """The resolved command-line settings (saved beside every output)."""
+    from emlpack import __version__
+
+    out = {k: v for k, v in vars(args).items() if k not in ("func", "debug") and
+           not callable(v)}
+    out["emlpack_version"] = __version__
+    return out
+
+
+def write_json(path: str | Path, data: dict) -> None:
+    from emlpack.io.extxyz import atomic_write
+
+    atomic_write(Path(path), lambda fh: json.dump(data, fh, indent=1, default=_jsonable))
+
+
+def _jsonable(obj):
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    return str(obj)
+
+
+# --------------------------------------------------------------------------- model
+def check_model_file(path: str | Path) -> Path:
+    """Refuse a file that cannot be an emlpack model before PyTorch is asked to read it.
+
+    ``torch.save`` writes a zip archive holding ``<name>/data.pkl``; anything else (empty,
+    text, random bytes, another archive) is refused here with a one-line reason.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise ModelFileError(f"{path}: no such model file")
+    if path.is_dir():
+        raise ModelFileError(f"{path}: is a folder, not a model file (.pt)")
+    size = path.stat().st_size
+    if size == 0:
+        raise ModelFileError(f"{path}: empty file, not an emlpack model")
+    with open(path, "rb") as fh:
+        head = fh.read(4)
+    if head != ZIP_MAGIC:
+        kind = "a text file" if _looks_like_text(path) else "binary data"
+        raise ModelFileError(f"{path}: not an emlpack model file ({kind}, not a PyTorch"
+                             " checkpoint archive)")
+    try:
+        with zipfile.ZipFile(path) as z:
+            names = z.namelist()
+    except (zipfile.BadZipFile, OSError) as exc:
+        raise ModelFileError(f"{path}: damaged model file ({exc})") from None
+    if not any(n.endswith("/data.pkl") or n == "data.pkl" for n in names):
+        raise ModelFileError(f"{path}: a zip archive, but not a PyTorch checkpoint")
+    return path
+
+
+def _looks_like_text(path: Path) -> bool:
+    with open(path, "rb") as fh:
+        chunk = fh.read(512)
+    try:
+        chunk.decode("utf-8")
+    except UnicodeDecodeError:
+        return False
+    return b"\x00" not in chunk
+
+
+def load_model(name_or_path: str):
+    """The one place that turns a MODEL argument into a float64 model (after the file check)."""
+    from emlpack.nn.checkpoint import load_model as _load
+
+    return _load(check_model_file(name_or_path))
+
+
+def model_elements(model) -> tuple[int, ...]:
+    return tuple(int(z) for z in model.config.elements)
+
+
+# --------------------------------------------------------------------------- structures
+def read_input_atoms(args) -> tuple:
+    """``(atoms, where)``: the raw input frame (``Es`` rows kept) from the file or ``--smiles``;
+    ``where`` names file and frame for every later message."""
+    smiles = getattr(args, "smiles", None)
+    path = getattr(args, "structure", None)
+    if smiles and path:
+        raise InputError("give a structure file or --smiles, not both")
+    if not smiles and not path:
+        raise InputError("give a structure file or --smiles")
+    if smiles:
+        from ase import Atoms
+        from rdkit import Chem
+
+        from emlpack.qm.sampling import molecule_from_smiles
+
+        mol = molecule_from_smiles(smiles, name=f"SMILES {smiles}")
+        atoms = Atoms(numbers=mol.numbers, positions=mol.positions)
+        atoms.info["charge"] = float(Chem.GetFormalCharge(Chem.MolFromSmiles(smiles)))
+        return atoms, f"SMILES {smiles}"
+    from emlpack.io.extxyz import read_frame_atoms
+
+    p = Path(path)
+    if p.suffix.lower() in (".xyz", ".extxyz") or not p.exists():
+        atoms = read_frame_atoms(p, args.index)
+        index = int(args.index)
+        return atoms, f"{p}, frame {index}"
+    import ase.io
+
+    try:
+        atoms = ase.io.read(p, index=int(args.index))
+    except Exception as exc:  # ASE raises many types for foreign files
+        raise InputError(f"{p}, frame {args.index}: cannot read the structure: {exc}") from None
+    return atoms, f"{p}, frame {args.index}"
+
+
+def check_atoms(atoms, where: str, elements, periodic: bool | None = None,
+                command: str = "") -> None:
+    """The cheap checks on the raw frame: elements the model knows, pbc and cell consistent,
+    periodicity the command needs, no cores closer than :data:`MIN_CORE_DISTANCE`."""
+    from ase.data import chemical_symbols
+
+    from emlpack.structure import PAIR_NUMBER
+
+    numbers = atoms.numbers
+    cores = numbers != PAIR_NUMBER
+    unknown = sorted(set(numbers[cores].tolist()) - set(elements))
+    if unknown:
+        names = ", ".join(f"{chemical_symbols[z]} (Z={z})" for z in unknown)
+        known = ", ".join(chemical_symbols[z] for z in sorted(elements))
+        raise InputError(f"{where}: element(s) {names} not supported by the model (trained for"
+                         f" {known})")
+    pbc = np.asarray(atoms.pbc, dtype=bool)
+    cell = atoms.cell.array
+    has_cell = bool(np.any(np.abs(cell) > 0))
+    if pbc.any() and not pbc.all():
+        raise InputError(f"{where}: mixed periodicity pbc={pbc.tolist()} is not supported"
+                         " (all or none)")
+    if has_cell and not pbc.any():
+        raise InputError(f"{where}: a cell (Lattice) is given but pbc is false: set"
+                         " pbc=\"T T T\" for a crystal or drop the Lattice for a molecule")
+    if pbc.all() and abs(np.linalg.det(cell)) < 1e-6:
+        raise InputError(f"{where}: periodic structure with a singular or missing cell")
+    is_crystal = bool(pbc.all())
+    if periodic is True and not is_crystal:
+        raise InputError(f"{where}: {command} needs a crystal (Lattice and pbc=\"T T T\");"
+                         " this is a molecule")
+    if periodic is False and is_crystal:
+        raise InputError(f"{where}: {command} needs a molecule; this is a crystal (pbc true)")
+    pos = atoms.positions[cores]
+    if len(pos) > 1:
+        d = pos[:, None, :] - pos[None, :, :]
+        if is_crystal:
+            from ase.geometry import find_mic
+
+            d = find_mic(d.reshape(-1, 3), cell, True)[0].reshape(d.shape)
+        r = np.linalg.norm(d, axis=-1) + np.eye(len(pos)) * 1e9
+        i, j = np.unravel_index(int(np.argmin(r)), r.shape)
+        if r[i, j] < MIN_CORE_DISTANCE:
+            ci, cj = np.flatnonzero(cores)[[min(i, j), max(i, j)]]
+            raise InputError(
+                f"{where}: atoms {ci} ({chemical_symbols[numbers[ci]]}) and {cj}"
+                f" ({chemical_symbols[numbers[cj]]}) are {r[i, j]:.2f} Å apart (closer than"
+                f" {MIN_CORE_DISTANCE:g} Å)")
+
+
+def read_structure(args, model, log: Log, periodic: bool | None = None, command: str = ""):
+    """The input structure of a command, checked cheaply first, then pairs guessed if needed.
+
+    Returns ``(structure, where)``. The field is applied separately (:func:`apply_field`).
+    """
+    from emlpack.io.extxyz import frame_to_structure
+    from emlpack.structure import PAIR_NUMBER
+
+    atoms, where = read_input_atoms(args)
+    if args.charge is not None:
+        atoms.info["charge"] = float(args.charge)
+    charge = float(atoms.info.get("charge", 0.0))
+    check_atoms(atoms, where, model_elements(model), periodic, command)
+    requested = requested_field(args)
+    check_field(_file_field(atoms, where) if requested is None else requested, args, where)
+    is_pair = atoms.numbers == PAIR_NUMBER
+    if is_pair.any():
+        return frame_to_structure(atoms, where), where
+    _valence_pairs(atoms, charge, where)
+    from emlpack.guess import guess_pairs
+    from emlpack.io import atoms_to_structure
+
+    t0 = time.perf_counter()
+    method = args.guess
+    log.progress(f"guessing electron pairs ({method}) for {atoms.get_chemical_formula()} ...")
+    cores = atoms.copy()
+    cores.info.pop("electron_pairs", None)
+    try:
+        pairs = guess_pairs(cores, method, charge=charge)
+    except Exception as exc:  # PySCF and the Lewis guess raise many types
+        raise InputError(f"{where}: the electron-pair guess ({method}) failed:"
+                         f" {str(exc).strip().splitlines()[0] if str(exc).strip() else exc!r}"
+                         ) from exc
+    log.progress(f"guessed {len(pairs)} electron pairs in {time.perf_counter() - t0:.1f} s")
+    field = _file_field(atoms, where)
+    return atoms_to_structure(cores, pairs=pairs, field=field, charge=charge,
+                              source=f"{where} (guessed pairs)"), where
+
+
+def _valence_pairs(atoms, charge: float, where: str) -> int:
+    """The number of valence pairs of the cores (raises on an odd electron count)."""
+    from emlpack.io.extxyz import ExtxyzError
+    from emlpack.structure import core_charges
+
+    valence = (float(core_charges(atoms.numbers).sum()) - charge) / 2.0
+    if valence != round(valence):
+        what = "a neutral" if charge == 0 else f"charge {charge:+g} of"
+        raise ExtxyzError(f"{where}: odd number of valence electrons for {what}"
+                          f" {atoms.get_chemical_formula(mode='hill')} (eMLP needs"
+                          " closed-shell electron pairs; is --charge right?)")
+    return int(round(valence))
+
+
+def _file_field(atoms, where: str):
+    from emlpack.units import FIELD_AU_IN_V_PER_A
+
+    if "external_field" in atoms.info:
+        return np.asarray(atoms.info["external_field"], float).reshape(3)
+    if "efield" in atoms.info:
+        return np.asarray(atoms.info["efield"], float).reshape(3) * FIELD_AU_IN_V_PER_A
+    return None
+
+
+def requested_field(args) -> np.ndarray | None:
+    """The field (V/Å) of ``--field``/``--field-au``, or None."""
+    from emlpack.units import FIELD_AU_IN_V_PER_A
+
+    if getattr(args, "field", None) is not None:
+        return np.asarray(args.field, float)
+    if getattr(args, "field_au", None) is not None:
+        return np.asarray(args.field_au, float) * FIELD_AU_IN_V_PER_A
+    return None
+
+
+def check_field(field, args, where: str) -> None:
+    """Refuse a non-finite field, or one above :data:`MAX_FIELD_V_PER_A` without ``--force``."""
+    if field is None:
+        return
+    field = np.asarray(field, float)
+    if not np.all(np.isfinite(field)):
+        raise InputError(f"{where}: the field contains NaN or infinity")
+    norm = float(np.linalg.norm(field))
+    if norm > MAX_FIELD_V_PER_A and not getattr(args, "force", False):
+        raise InputError(
+            f"{where}: field |F| = {norm:.3g} V/Å is above {MAX_FIELD_V_PER_A:g} V/Å (about"
+            " 0.02 au, twice the training range); pass --force to use it anyway")
+
+
+def apply_field(s, args, where: str, log: Log):
+    """The structure with ``--field``/``--field-au`` applied (else the file's field), checked
+    and printed; returns ``(structure, info)`` with ``info`` for the JSON output."""
+    requested = requested_field(args)
+    source = "--field" if requested is not None else "the structure file"
+    field = s.field if requested is None else requested
+    check_field(field, args, where)
+    if requested is not None:
+        s = s.copy(field=np.asarray(requested, float))
+    if not np.any(s.field):
+        source = "none"
+    log(f"field: {np.array2string(s.field, precision=5)} V/Å (from {source})")
+    return s, {"field_V_per_A": s.field.tolist(), "field_source": source}

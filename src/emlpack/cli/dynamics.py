@@ -1,0 +1,164 @@
+"""``emlp md``, ``md-analysis`` and ``md-ir``: Born-Oppenheimer MD and its analysis."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from emlpack.cli.common import (
+    Log,
+    add_field_arguments,
+    add_model_argument,
+    add_parser,
+    add_quiet_argument,
+    add_structure_arguments,
+    add_threads_argument,
+    apply_field,
+    load_model,
+    positive,
+    read_structure,
+    requested_field,
+    set_threads,
+    settings,
+    write_json,
+)
+
+
+def add_md(sub) -> None:
+    p = add_parser(sub, "md", "Born-Oppenheimer MD with relaxed electron pairs (NVT/NVE,"
+                   " optional field); resumable")
+    add_model_argument(p)
+    add_structure_arguments(p)
+    p.add_argument("--frame", dest="index", help=argparse.SUPPRESS)  # the old name of --index
+    p.add_argument("-o", "--output", default="md_run",
+                   help="output folder (trajectory.xyz, checkpoint, md.log, summary.json,"
+                   " settings.json)")
+    p.add_argument("--steps", type=int, default=1000, help="total MD steps")
+    p.add_argument("--dt", type=float, default=0.5, help="time step, fs")
+    p.add_argument("--temperature", type=float, default=300.0,
+                   help="K: NVT target and initial velocities")
+    p.add_argument("--nve", action="store_true", help="NVE (velocity Verlet) instead of NVT")
+    add_field_arguments(p)
+    p.add_argument("--relax", default="warm", choices=["warm", "corrected", "paper"],
+                   help="pair relaxation: warm-started quasi-Newton, the same with a final"
+                   " Newton correction (corrected) or the paper's boxed L-BFGS-B")
+    p.add_argument("--fmax", type=float, default=1e-5, help="pair-force tolerance, eV/Å")
+    p.add_argument("--tdamp", type=float, default=100.0, help="thermostat time constant, fs")
+    p.add_argument("--record-every", type=int, default=1, help="a frame every N steps")
+    p.add_argument("--checkpoint-every", type=int, default=10, help="flush every N steps")
+    p.add_argument("--curvature-every", type=int, default=50,
+                   help="exact pair Hessian (curvature check) every N steps")
+    p.add_argument("--seed", type=int, default=0, help="seed of the initial velocities")
+    add_threads_argument(p, default=1)
+    p.add_argument("--no-resume", action="store_true", help="start over (deletes the old run)")
+    add_quiet_argument(p)
+
+    def run(args):
+        from pathlib import Path
+
+        from emlpack.bonding import bonding_changes
+        from emlpack.md import MDWatchdogError, Watchdog, run_md
+
+        positive(args.steps, "--steps")
+        positive(args.dt, "--dt")
+        positive(args.temperature, "--temperature", allow_zero=True)
+        positive(args.fmax, "--fmax")
+        positive(args.tdamp, "--tdamp")
+        for name in ("record_every", "checkpoint_every", "curvature_every"):
+            positive(getattr(args, name), "--" + name.replace("_", "-"))
+        set_threads(args.threads)
+        log = Log(args.quiet)
+        model = load_model(args.model)
+        s, where = read_structure(args, model, log, command="emlp md")
+        s, field_info = apply_field(s, args, where, log)
+        out = Path(args.output)
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(out / "settings.json", {**settings(args), **field_info, "structure": where})
+        try:
+            result = run_md(
+                model, s, args.steps, out, dt_fs=args.dt, temperature_K=args.temperature,
+                ensemble="nve" if args.nve else "nvt",
+                field=s.field if requested_field(args) is not None else None,
+                seed=args.seed, tdamp_fs=args.tdamp, relax=args.relax, fmax=args.fmax,
+                record_every=args.record_every, checkpoint_every=args.checkpoint_every,
+                resume=not args.no_resume,
+                watchdog=Watchdog(curvature_every=args.curvature_every),
+            )
+        except MDWatchdogError as exc:  # a failed computation, not a user error: exit 3
+            print(f"emlp md: watchdog: {exc}", file=sys.stderr)
+            return 3
+        warnings = []
+        if not s.pbc:
+            from emlpack.io import read_structures
+
+            last = read_structures(out / "trajectory.xyz", "-1")[0]
+            warnings = [f"bonding changed: {c}" for c in
+                        bonding_changes(s.numbers, s.positions, last.positions)]
+        if result.watchdog_events:
+            warnings.append(f"{result.watchdog_events} watchdog events (see md.log)")
+        for w in warnings:
+            log(f"warning: {w}")
+        write_json(out / "warnings.json", {"warnings": warnings})
+        log(f"{result.steps} steps, {result.watchdog_events} watchdog events,"
+            f" {result.evaluations_per_step:.2f} evaluations/step -> {result.output}")
+        log("done with warnings" if warnings else "done")
+        return 0
+
+    p.set_defaults(func=run, resumable=True)
+
+
+def add_md_analysis(sub) -> None:
+    p = add_parser(sub, "md-analysis", "conserved-quantity stability of MD trajectories"
+                   " (slope, max jump per atom; the paper's scatter plot)")
+    p.add_argument("trajectories", nargs="+", help="extxyz trajectories written by 'emlp md'")
+    p.add_argument("-o", "--output", help="JSON file with one entry per run")
+    p.add_argument("--json", dest="output", help=argparse.SUPPRESS)
+    p.add_argument("--plot", metavar="FILE.png",
+                   help="scatter plot PNG (|slope| vs max jump, log-log)")
+    p.add_argument("--series", metavar="FILE.png", help="PNG of E_cons(t) per atom of every run")
+    p.add_argument("--discard", type=int, default=10, help="initial steps discarded")
+    p.add_argument("--groups", nargs="+", help="one group name per trajectory (plot colours)")
+
+    def run(args):
+        from emlpack.md_analysis import run_analysis
+
+        positive(args.discard, "--discard", allow_zero=True)
+        run_analysis(args.trajectories, args.plot, args.output, args.discard, args.groups,
+                     args.series)
+        return 0
+
+    p.set_defaults(func=run)
+
+
+def add_md_ir(sub) -> None:
+    p = add_parser(sub, "md-ir", "IR spectrum from the dipole autocorrelation of an MD"
+                   " trajectory (JSON, optional PNG)")
+    p.add_argument("trajectory", help="extxyz trajectory written by 'emlp md'")
+    p.add_argument("-o", "--output", default="md_ir.json", help="JSON file of the spectrum")
+    p.add_argument("--plot", metavar="FILE.png", help="PNG plot")
+    p.add_argument("--png", dest="plot", help=argparse.SUPPRESS)
+    p.add_argument("--harmonic", help="'emlp ir' JSON to overlay (harmonic spectrum)")
+    p.add_argument("--temperature", type=float, help="K (default: mean of the frames)")
+    p.add_argument("--discard", type=int, default=0, help="initial steps discarded")
+    p.add_argument("--window", default="hann", choices=["hann", "gaussian", "none"],
+                   help="lag window")
+    p.add_argument("--correction", default="harmonic",
+                   choices=["harmonic", "schofield", "standard", "none"],
+                   help="quantum correction factor")
+    p.add_argument("--padding", type=int, default=8, help="zero-padding factor")
+
+    def run(args):
+        from emlpack.md_analysis import run_md_ir
+
+        positive(args.temperature, "--temperature")
+        positive(args.discard, "--discard", allow_zero=True)
+        positive(args.padding, "--padding")
+        run_md_ir(args.trajectory, args.output, args.plot, args.harmonic, args.temperature,
+                  args.discard, window=args.window, correction=args.correction,
+                  padding=args.padding)
+        return 0
+
+    p.set_defaults(func=run)
+
+
+COMMANDS = [add_md, add_md_analysis, add_md_ir]

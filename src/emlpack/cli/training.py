@@ -1,0 +1,80 @@
+"""``emlp train``, ``evaluate``, ``demo``: training and testing models."""
+
+from __future__ import annotations
+
+from emlpack.cli.common import add_parser
+from emlpack.errors import InputError
+
+
+def add_train(sub) -> None:
+    p = add_parser(sub, "train", help="train an eMLP (YAML config + key=value overrides;"
+                       " data parallel under torchrun)")
+    p.add_argument("config", help="YAML config, e.g. configs/small_cpu.yaml")
+    p.add_argument("overrides", nargs="*", help="key=value overrides, e.g. training.max_epochs=5")
+    p.add_argument("--seeds", type=int, nargs="+", help="train an ensemble, one model per seed")
+    p.add_argument("--restart", action="store_true",
+                   help="start afresh instead of resuming from <output.dir>/last.pt")
+
+    def run(args):
+        from emlpack.data.dataset import DataError
+        from emlpack.data.references import ReferenceError
+        from emlpack.train.config import ConfigError, load_config
+        from emlpack.train.trainer import train, train_ensemble
+
+        try:
+            cfg = load_config(args.config, args.overrides)
+            if args.seeds:
+                paths = train_ensemble(cfg, args.seeds, resume=not args.restart)
+            else:
+                paths = [train(cfg, resume=not args.restart)]
+        except (ConfigError, DataError, ReferenceError) as exc:
+            raise InputError(str(exc)) from exc
+        print("best model(s): " + " ".join(str(p) for p in paths))
+        return 0
+
+    p.set_defaults(func=run)
+
+
+def add_evaluate(sub) -> None:
+    p = add_parser(sub, "evaluate", help="static/dynamic error tables and parity plots of"
+                       " trained model(s) (an ensemble gives mean ± std)")
+    p.add_argument("paths", nargs="+", metavar="MODEL... DATA",
+                   help="one or more model checkpoints, then the data (extxyz or .h5)")
+    p.add_argument("--subset", default="test", choices=["test", "val", "train", "all"],
+                   help="subset of the data (the split stored with the model)")
+    p.add_argument("-o", "--output", default="evaluation", help="output directory")
+    p.add_argument("--no-dynamic", action="store_true", help="skip the pair relaxations")
+    p.add_argument("--max-structures", type=int, help="evaluate at most this many")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    def run(args):
+        from emlpack.train.evaluate import evaluate_models
+
+        if len(args.paths) < 2:
+            raise InputError("give MODEL [MODEL ...] DATA")
+        try:
+            table, _ = evaluate_models(args.paths[:-1], args.paths[-1], args.output,
+                                       args.subset, not args.no_dynamic, args.max_structures,
+                                       progress=not args.quiet)
+        except (ValueError, OSError) as exc:
+            raise InputError(str(exc)) from exc
+        print(table)
+        print(f"wrote {args.output}/evaluation.md, evaluation.json, parity.png")
+        return 0
+
+    p.set_defaults(func=run)
+
+
+def add_demo(sub) -> None:
+    p = add_parser(sub, "demo", help="run the end-to-end demo on the embedded example data")
+    p.add_argument("-o", "--output", default="demo_output", help="output folder")
+
+    def run(args):
+        from emlpack.demo import run_demo
+
+        return run_demo(args.output)
+
+    p.set_defaults(func=run)
+
+
+COMMANDS = [add_train, add_evaluate, add_demo]
