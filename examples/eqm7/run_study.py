@@ -1,0 +1,1148 @@
+"""The paper's molecular study on mini-eQM7 (issue 15): train, evaluate, DFT, IR, MD, tables.
+
+Stages (each resumable: work whose output file exists is skipped; outputs are written to a
+temporary file and renamed, so a killed run leaves no half-written result)::
+
+    train           4 augmented + 4 non-augmented models (seeds of the config) on the card's
+                    train/val split -> WORKDIR/models/GROUP/seedK/best.pt (+ done.json);
+                    an unfinished model resumes from its last.pt
+    evaluate        Table 2 (static) and Table 3 (dynamic) errors of every model on the test
+                    molecules of the card, and on the authors' six molecules
+                    (../shared/data/eqm7_pbe0_subset.xyz) when that file exists
+                    -> WORKDIR/eval/SET/MODEL.json
+    dft             DFT reference of every test molecule at the configured level: optimised
+                    geometry, Boys centres, dipole, polarizability (finite fields), harmonic
+                    frequencies and IR intensities (analytic Hessian, Born charges from the
+                    field-perturbed forces) -> WORKDIR/dft/NAME.json (sub-steps cached in
+                    WORKDIR/dft/NAME/, so a killed molecule resumes where it stopped)
+    polarizability  every model at the DFT geometries (pairs relaxed from the DFT centres),
+                    polarizability vs DFT -> WORKDIR/polarizability/MODEL.json
+    ir              every model: optimisation from the DFT geometry, harmonic IR
+                    -> WORKDIR/ir/MODEL.json; Figure 4 PNG (aziridine, 3-(methylamino)but-2-enal)
+    md              NVT runs (500 fs, 300 K, 0.5 fs) per test molecule x model
+                    -> WORKDIR/md/MODEL/NAME/{trajectory.xyz, analysis.json}; Figure 3 PNG
+    table           RESULTS_DIR/results.json + results.md (paper's numbers beside ours,
+                    issue 15's targets with the measured values)
+    all             every stage above in this order
+
+Usage (from the project root)::
+
+    OMP_NUM_THREADS=1 python examples/eqm7/run_study.py all
+    python examples/eqm7/run_study.py train evaluate table training.max_time_minutes=30
+    python examples/eqm7/run_study.py dft dft.level=quick workdir=/tmp/eqm7
+
+``key=value`` arguments override the YAML config (dots for nesting, values parsed as YAML;
+``train.KEY=VALUE`` entries are passed to the training config, see config.yaml).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import csv
+import datetime as dt
+import json
+import os
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+HERE = Path(__file__).resolve().parent
+STAGES = ("train", "evaluate", "dft", "polarizability", "ir", "md", "table")
+
+#: The paper's numbers (emlp-paper.tex): Table 2 (static), Table 3 (dynamic), the MD section
+#: (Figure 3) and the IR section (Figure 4). Energies meV/atom, forces meV/Å, dipole D,
+#: polarizability bohr^3, rates %, frequencies cm^-1.
+PAPER = {
+    "static": {
+        "intrinsic": {"energy": 170.55, "forces": 1106.8, "pair_forces": 385.9},
+        "noaug": {"mae": {"energy": (4.45, 0.11), "forces": (48.8, 0.3),
+                          "pair_forces": (43.8, 0.2)},
+                  "median": {"energy": (3.02, 0.13), "forces": (27.9, 0.2),
+                             "pair_forces": (30.1, 0.2)}},
+        "aug": {"mae": {"energy": (4.95, 0.25), "forces": (52.1, 0.3),
+                        "pair_forces": (50.3, 0.4)},
+                "median": {"energy": (3.45, 0.39), "forces": (29.8, 0.2),
+                           "pair_forces": (34.6, 0.3)}},
+    },
+    "dynamic": {
+        "intrinsic": {"energy": 174.93, "forces": 1177.0, "dipole": 1.229,
+                      "polarizability": 6.70},
+        "noaug": {"mae": {"energy": (40.8, 21.1), "forces": (104.0, 23.2),
+                          "dipole": (0.169, 0.042), "polarizability": (0.72, 0.44)},
+                  "median": {"energy": (3.15, 0.13), "forces": (30.0, 0.6),
+                             "dipole": (0.035, 0.001), "polarizability": (0.26, 0.01)},
+                  "error_rate": (2.4, 0.8), "polarizability_error_rate": (0.2, 0.4)},
+        "aug": {"mae": {"energy": (49.3, 33.2), "forces": (137.8, 63.8),
+                        "dipole": (0.286, 0.014), "polarizability": (0.54, 0.09)},
+                "median": {"energy": (3.45, 0.18), "forces": (32.9, 0.5),
+                           "dipole": (0.078, 0.005), "polarizability": (0.31, 0.03)},
+                "error_rate": (0.4, 0.1), "polarizability_error_rate": (0.0, 0.0)},
+    },
+    "md": {"noaug_unstable_pct": 9.8, "aug_unstable_pct": 0.0},
+    "ir": {"frequency_mae_cm-1": 15.0},
+}
+GROUP_LABEL = {"aug": "augmented", "noaug": "non-augmented"}
+#: the IR molecules of Figure 4 (names in molecules.csv)
+IR_MOLECULES = {"qm7-0011": "aziridine", "extra-0000": "3-(methylamino)but-2-enal"}
+
+
+# ---------------------------------------------------------------------- config
+def load_config(path: str | Path, overrides: list[str] = ()) -> dict:
+    cfg = yaml.safe_load(Path(path).read_text()) or {}
+    for text in overrides:
+        if "=" not in text:
+            raise SystemExit(f"override {text!r}: expected key=value")
+        key, value = text.split("=", 1)
+        if key.startswith("train."):  # training-config override, passed through
+            cfg.setdefault("training", {}).setdefault("overrides", []).append(
+                f"{key[len('train.'):]}={value}")
+            continue
+        node = cfg
+        parts = key.split(".")
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = yaml.safe_load(value)
+    cfg.setdefault("workdir", "runs/eqm7")
+    cfg.setdefault("results_dir", str(HERE))
+    cfg.setdefault("data", "datasets/mini-eqm7")
+    cfg.setdefault("seeds", [0, 1, 2, 3])
+    return cfg
+
+
+class Study:
+    """Paths and shared state of one study run; ``work`` counts the work actually done
+    (models trained, evaluations, DFT molecules, MD runs, ...), so callers can check that a
+    re-run skipped everything."""
+
+    def __init__(self, cfg: dict, log=print) -> None:
+        self.cfg = cfg
+        self.workdir = Path(cfg["workdir"])
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        self.data = Path(cfg["data"])
+        self.log = log
+        self.work: Counter = Counter()
+        self._shards = None
+
+    # ------------------------------------------------------------------ data
+    def shards(self):
+        from emlpack.data.shards import read_shards
+
+        if self._shards is None:
+            self._shards = read_shards(self.data)
+        return self._shards
+
+    def molecules(self) -> list[dict]:
+        from emlpack.data.shards import read_molecule_table
+
+        return read_molecule_table(self.data)
+
+    def test_molecules(self) -> list[dict]:
+        """Test molecules of the card (optionally limited by ``molecules``/``max_molecules``)."""
+        rows = [m for m in self.molecules() if m["split"] == "test"]
+        names = self.cfg.get("molecules")
+        if names:
+            rows = [m for m in rows if m["name"] in set(names)]
+        limit = self.cfg.get("max_molecules")
+        return rows[: int(limit)] if limit else rows
+
+    # ------------------------------------------------------------------ models
+    def groups(self) -> dict[str, bool]:
+        return {"aug": True, "noaug": False}
+
+    def model_dir(self, group: str, seed: int) -> Path:
+        return self.workdir / "models" / group / f"seed{seed}"
+
+    def models(self) -> list[tuple[str, str, Path]]:
+        """``(group, name, best.pt)`` of every finished model (train stage done)."""
+        out = []
+        for group in self.groups():
+            for seed in self.cfg["seeds"]:
+                run = self.model_dir(group, seed)
+                if (run / "done.json").exists() and (run / "best.pt").exists():
+                    out.append((group, f"{group}-s{seed}", run / "best.pt"))
+        return out
+
+    def require_models(self) -> list[tuple[str, str, Path]]:
+        models = self.models()
+        if not models:
+            raise SystemExit(f"{self.workdir / 'models'}: no trained model (run the train stage)")
+        return models
+
+
+# ---------------------------------------------------------------------- helpers
+def _write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _jsonable(x):
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, Path):
+        return str(x)
+    return str(x)
+
+
+def _write_json(path: Path, data) -> None:
+    _write_text(path, json.dumps(data, indent=1, default=_jsonable))
+
+
+def _read_json(path: Path):
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def _resolve(path) -> Path:
+    p = Path(path)
+    return p if p.is_absolute() or p.exists() else HERE / p
+
+
+def _subsample(items: list, limit: int | None) -> list:
+    """At most ``limit`` items, evenly spaced (all when ``limit`` is falsy)."""
+    if not limit or len(items) <= int(limit):
+        return list(items)
+    idx = np.unique(np.linspace(0, len(items) - 1, int(limit)).round().astype(int))
+    return [items[i] for i in idx]
+
+
+def mean_std(values) -> dict:
+    """``{"mean", "std", "n", "values"}`` over models (std with ddof=1; 0 for one value)."""
+    v = np.asarray([x for x in values if x is not None], dtype=float)
+    if v.size == 0:
+        return {"mean": None, "std": None, "n": 0, "values": []}
+    return {"mean": float(v.mean()), "std": float(v.std(ddof=1)) if v.size > 1 else 0.0,
+            "n": int(v.size), "values": v.tolist()}
+
+
+def _cached(path: Path, compute):
+    """An ``.npz`` sub-result: loaded when present, else computed (dict of arrays) and saved."""
+    if path.exists():
+        with np.load(path) as d:
+            return {k: d[k] for k in d.files}
+    out = {k: np.asarray(v) for k, v in compute().items()}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
+    np.savez(tmp, **out)
+    os.replace(tmp, path)
+    return out
+
+
+def _load(path: Path):
+    from emlpack.train.evaluate import load_for_evaluation
+
+    return load_for_evaluation(path)
+
+
+# ---------------------------------------------------------------------- train
+def stage_train(study: Study) -> list[Path]:
+    from emlpack.train.config import load_config as load_train_config
+    from emlpack.train.trainer import train
+
+    t = study.cfg.get("training", {})
+    paths = []
+    for group, augmented in study.groups().items():
+        for seed in study.cfg["seeds"]:
+            run = study.model_dir(group, seed)
+            done = run / "done.json"
+            if done.exists():
+                study.log(f"train: {group} seed {seed} done ({run}), skipped")
+                paths.append(run / "best.pt")
+                continue
+            overrides = [f"data.path={study.data}", f"output.dir={run}",
+                         f"augmentation.enabled={str(augmented).lower()}",
+                         f"training.seed={seed}", "output.progress=false",
+                         *t.get("overrides", [])]
+            cfg = load_train_config(_resolve(t.get("config", "train.yaml")), overrides)
+            t0 = time.perf_counter()
+            best = train(cfg)  # resumes from last.pt when a previous run was cut off
+            study.work["train"] += 1
+            rows = list(csv.DictReader((run / "log.csv").open())) if (run / "log.csv").exists() \
+                else []
+            best_row = min(rows, key=lambda r: float(r["val_loss"])) if rows else {}
+            _write_json(done, {"best": str(best), "epochs": len(rows),
+                               "wall_s_this_call": time.perf_counter() - t0,
+                               "best_epoch": best_row.get("epoch"),
+                               "best_val": {k: float(v) for k, v in best_row.items()
+                                            if k.startswith("val_") and v not in ("", None)}})
+            study.log(f"train: {group} seed {seed} -> {best}")
+            paths.append(best)
+    return paths
+
+
+# ---------------------------------------------------------------------- evaluate
+def test_sets(study: Study) -> dict[str, list]:
+    """``{"test": [...], "pbe0_subset": [...]}`` (the second only when its file exists)."""
+    e = study.cfg.get("evaluate", {})
+    data = study.shards()
+    split = data.split_indices()
+    sets = {"test": _subsample([data.structures[i] for i in split["test"]],
+                               e.get("max_structures"))}
+    second = e.get("second_test_set")
+    if second and Path(second).exists():
+        from emlpack.data.dataset import load_data
+
+        structures, _ = load_data(second)
+        sets["pbe0_subset"] = _subsample(structures, e.get("max_structures_second"))
+    return sets
+
+
+def stage_evaluate(study: Study) -> dict:
+    from emlpack.train.evaluate import evaluate
+
+    e = study.cfg.get("evaluate", {})
+    models = study.require_models()
+    sets = test_sets(study)
+    second = e.get("second_test_set")
+    if "pbe0_subset" not in sets:
+        study.log(f"evaluate: {second} not found; the second test set is skipped")
+    out = {}
+    for set_name, structures in sets.items():
+        if not structures:
+            study.log(f"evaluate: no {set_name} structures yet, skipped")
+            continue
+        for group, name, path in models:
+            target = study.workdir / "eval" / set_name / f"{name}.json"
+            if target.exists():
+                study.log(f"evaluate: {set_name}/{name} exists, skipped")
+                continue
+            model, reference, _ = _load(path)
+            t0 = time.perf_counter()
+            metrics, _ = evaluate(model, reference, structures,
+                                  dynamic=bool(e.get("dynamic", True)))
+            metrics.update(model=str(path), group=group, name=name, set=set_name,
+                           wall_s=time.perf_counter() - t0)
+            metrics.get("dynamic", {}).pop("structures", None)  # per-structure records: large
+            _write_json(target, metrics)
+            study.work["evaluate"] += 1
+            out[(set_name, name)] = metrics
+            study.log(f"evaluate: {set_name}/{name}: static F MAE"
+                      f" {1000 * metrics['static']['forces']['mae']:.1f} meV/Å")
+    return out
+
+
+# ---------------------------------------------------------------------- dft
+def _start_geometry(study: Study, row: dict) -> tuple[np.ndarray, np.ndarray, str]:
+    """The prepared (cheap-level optimised) geometry of the campaign, else RDKit's."""
+    prepared = study.data / "prepared" / f"{row['name']}.npz"
+    if prepared.exists():
+        with np.load(prepared) as d:
+            return d["numbers"].astype(int), d["positions"].astype(float), \
+                f"prepared ({d['level']})"
+    from emlpack.qm.sampling import molecule_from_smiles
+
+    mol = molecule_from_smiles(row["smiles"], row["name"])
+    return mol.numbers.astype(int), mol.positions.astype(float), "RDKit (MMFF)"
+
+
+def _labeler_calculator(labeler):
+    from ase.calculators.calculator import CalculationFailed, Calculator, all_changes
+
+    class _Calc(Calculator):
+        implemented_properties = ["energy", "forces"]
+
+        def calculate(self, atoms=None, properties=("energy",), system_changes=all_changes):
+            super().calculate(atoms, properties, system_changes)
+            res = labeler(self.atoms.numbers, self.atoms.positions, localize=False)
+            if not res.ok:
+                raise CalculationFailed(res.error)
+            self.results = {"energy": res.energy, "forces": res.forces}
+
+    return _Calc()
+
+
+def harmonic_ir(hessian: np.ndarray, born: np.ndarray, numbers, positions) -> dict:
+    """Frequencies (cm^-1, imaginary negative) and IR intensities (km/mol) from a Cartesian
+    Hessian (eV/Å²) and dipole derivatives dmu_a/dR_ib (3, 3N; e), as :mod:`emlpack.spectra`."""
+    from ase.data import atomic_masses
+
+    from emlpack.spectra import normal_modes
+    from emlpack.units import IR_KM_PER_MOL_PER_E2_AMU, WAVENUMBER_CM1_PER_SQRT_EV_A2_AMU
+
+    masses = atomic_masses[np.asarray(numbers, dtype=int)]
+    evals, vecs = normal_modes(hessian, np.asarray(positions), masses)
+    freqs = np.sign(evals) * np.sqrt(np.abs(evals)) * WAVENUMBER_CM1_PER_SQRT_EV_A2_AMU
+    inv_sqrt_m = 1.0 / np.sqrt(np.repeat(masses, 3))
+    dmu_dq = born @ (vecs * inv_sqrt_m[:, None])
+    return {"frequencies": freqs, "intensities": IR_KM_PER_MOL_PER_E2_AMU * (dmu_dq**2).sum(0)}
+
+
+def dft_molecule(study: Study, row: dict, labeler) -> dict:
+    """DFT reference of one molecule; every sub-step cached under WORKDIR/dft/NAME/."""
+    from ase import Atoms
+    from ase.optimize import BFGS
+
+    from emlpack.qm.labeling import pyscf_hessian
+    from emlpack.units import COULOMB_EV_A, FIELD_AU_IN_V_PER_A, POLARIZABILITY_A3_IN_BOHR3
+
+    d = study.cfg.get("dft", {})
+    cache = study.workdir / "dft" / row["name"]
+    numbers, start, origin = _start_geometry(study, row)
+    t0 = time.perf_counter()
+
+    def optimise():
+        atoms = Atoms(numbers=numbers, positions=start)
+        atoms.calc = _labeler_calculator(labeler)
+        opt = BFGS(atoms, logfile=None, maxstep=0.1)
+        converged = opt.run(fmax=float(d.get("fmax", 0.01)), steps=int(d.get("max_steps", 100)))
+        return {"positions": atoms.positions, "converged": bool(converged),
+                "steps": opt.get_number_of_steps(),
+                "max_force": np.abs(atoms.get_forces()).max()}
+
+    opt = _cached(cache / "opt.npz", optimise)
+    pos = opt["positions"]
+
+    def ground():
+        r = labeler(numbers, pos, forces=True, localize=True)
+        if not r.ok:
+            raise RuntimeError(f"{row['name']}: DFT failed at the optimum: {r.error}")
+        return {"energy": r.energy, "forces": r.forces, "dipole": r.dipole, "pairs": r.pairs}
+
+    g = _cached(cache / "ground.npz", ground)
+    f_au = float(d.get("field_au", 1e-3))
+    f_v = f_au * FIELD_AU_IN_V_PER_A
+    dip = np.zeros((3, 2, 3))
+    frc = np.zeros((3, 2, len(numbers), 3))
+    for a in range(3):
+        for k, sign in enumerate((1.0, -1.0)):
+            field = np.zeros(3)
+            field[a] = sign * f_v
+
+            def perturbed(field=field):
+                r = labeler(numbers, pos, field=field, forces=True, localize=False)
+                if not r.ok:
+                    raise RuntimeError(f"{row['name']}: DFT failed under field {field}: {r.error}")
+                return {"dipole": r.dipole, "forces": r.forces}
+
+            p = _cached(cache / f"field_{'xyz'[a]}{'+-'[k]}.npz", perturbed)
+            dip[a, k], frc[a, k] = p["dipole"], p["forces"]
+    # alpha_ij = d mu_i / d F_j (e Å²/V); Born charges dmu_a/dR_ib = dF_ib/dE_a (e)
+    alpha = ((dip[:, 0] - dip[:, 1]) / (2 * f_v)).T
+    alpha = 0.5 * (alpha + alpha.T)
+    born = ((frc[:, 0] - frc[:, 1]) / (2 * f_v)).reshape(3, -1)
+    hess = _cached(cache / "hessian.npz",
+                   lambda: {"hessian": pyscf_hessian(labeler, numbers, pos)})["hessian"]
+    ir = harmonic_ir(hess, born, numbers, pos)
+    to_bohr3 = COULOMB_EV_A * POLARIZABILITY_A3_IN_BOHR3
+    return {
+        "name": row["name"], "smiles": row["smiles"], "level": labeler.level.name,
+        "start_geometry": origin, "numbers": numbers.tolist(), "positions": pos.tolist(),
+        "optimisation": {"converged": bool(opt["converged"]), "steps": int(opt["steps"]),
+                         "max_force": float(opt["max_force"]),
+                         "fmax": float(d.get("fmax", 0.01))},
+        "energy": float(g["energy"]), "max_force_at_optimum": float(np.abs(g["forces"]).max()),
+        "pairs": g["pairs"].tolist(), "dipole_e_A": g["dipole"].tolist(),
+        "field_step_au": f_au,
+        "polarizability_bohr3": (alpha * to_bohr3).tolist(),
+        "polarizability_isotropic_bohr3": float(np.trace(alpha) * to_bohr3 / 3),
+        "born_charges_e": born.tolist(), "hessian_eV_A2": hess.tolist(),
+        "frequencies_cm-1": ir["frequencies"].tolist(),
+        "intensities_km_per_mol": ir["intensities"].tolist(),
+        "wall_s_this_call": time.perf_counter() - t0,
+    }
+
+
+def stage_dft(study: Study) -> dict:
+    from emlpack.qm.pyscf_labeler import PySCFLabeler
+
+    d = study.cfg.get("dft", {})
+    labeler = PySCFLabeler(d.get("level", "paper"), boys_starts=int(d.get("boys_starts", 3)),
+                           threads=d.get("threads"))
+    out = {}
+    for row in study.test_molecules():
+        target = study.workdir / "dft" / f"{row['name']}.json"
+        if target.exists():
+            study.log(f"dft: {row['name']} exists, skipped")
+            continue
+        if _read_json(target.with_suffix(".failed.json")):
+            study.log(f"dft: {row['name']} failed before (see {target.stem}.failed.json),"
+                      " skipped; delete that file to retry")
+            continue
+        study.log(f"dft: {row['name']} ({row['smiles']}) at {labeler.level.name}")
+        try:
+            res = dft_molecule(study, row, labeler)
+        except Exception as exc:  # noqa: BLE001 - one molecule must not stop the stage
+            _write_json(target.with_suffix(".failed.json"),
+                        {"name": row["name"], "error": f"{type(exc).__name__}: {exc}"})
+            study.log(f"dft: {row['name']} FAILED: {exc}")
+            continue
+        _write_json(target, res)
+        study.work["dft"] += 1
+        out[row["name"]] = res
+        study.log(f"dft: {row['name']}: alpha_iso {res['polarizability_isotropic_bohr3']:.2f}"
+                  f" bohr³, {res['wall_s_this_call']:.0f} s")
+    return out
+
+
+def dft_results(study: Study) -> dict[str, dict]:
+    """The finished DFT references of the test molecules, by name."""
+    out = {}
+    for row in study.test_molecules():
+        r = _read_json(study.workdir / "dft" / f"{row['name']}.json")
+        if r is not None:
+            out[row["name"]] = r
+    return out
+
+
+def _dft_structure(r: dict):
+    from emlpack.structure import Structure
+
+    return Structure(numbers=np.array(r["numbers"]), positions=np.array(r["positions"]),
+                     pairs=np.array(r["pairs"]).reshape(-1, 3), source=f"DFT optimum {r['name']}")
+
+
+# ---------------------------------------------------------------------- polarizability
+def stage_polarizability(study: Study) -> None:
+    from emlpack.relax import relax_pairs
+    from emlpack.response import molecule_response
+
+    refs = dft_results(study)
+    if not refs:
+        study.log("polarizability: no DFT reference yet (run the dft stage), skipped")
+        return
+    for group, name, path in study.require_models():
+        target = study.workdir / "polarizability" / f"{name}.json"
+        if target.exists() and set(_read_json(target)["molecules"]) >= set(refs):
+            study.log(f"polarizability: {name} exists, skipped")
+            continue
+        model, _, _ = _load(path)
+        rows = {}
+        for mol, r in refs.items():
+            s = _dft_structure(r)
+            res = relax_pairs(model, s)[0]
+            shift = float(np.linalg.norm(res.pairs - s.pairs, axis=1).max()) if s.n_pairs else 0.
+            failure = res.reason or (f"a pair moved {shift:.2f} Å from its DFT centre"
+                                     if shift > 0.5 else "")
+            row = {"failure": failure, "max_pair_shift": shift}
+            if not failure:
+                try:
+                    resp = molecule_response(model, s.copy(pairs=res.pairs), relax_cores=False)
+                    row["polarizability_bohr3"] = resp.as_dict()["polarizability_bohr3"]
+                except (np.linalg.LinAlgError, ValueError) as exc:
+                    row["failure"] = f"response failed: {exc}"
+            rows[mol] = row
+        _write_json(target, {"group": group, "name": name, "model": str(path),
+                             "molecules": rows})
+        study.work["polarizability"] += 1
+        study.log(f"polarizability: {name}: {len(rows)} molecules")
+
+
+def polarizability_summary(study: Study) -> dict | None:
+    refs = dft_results(study)
+    per_group: dict[str, dict] = {}
+    for group, name, _ in study.models():
+        r = _read_json(study.workdir / "polarizability" / f"{name}.json")
+        if r is None:
+            continue
+        err, fails = [], 0
+        for mol, row in r["molecules"].items():
+            if mol not in refs:
+                continue
+            if row["failure"]:
+                fails += 1
+                continue
+            err.append(np.array(row["polarizability_bohr3"])
+                       - np.array(refs[mol]["polarizability_bohr3"]))
+        e = np.abs(np.concatenate([x.ravel() for x in err])) if err else np.zeros(0)
+        per_group.setdefault(group, {})[name] = {
+            "mae": float(e.mean()) if e.size else None,
+            "median": float(np.median(e)) if e.size else None,
+            "error_rate": fails / max(len(r["molecules"]), 1), "n_molecules": len(r["molecules"]),
+            "tensors": {m: row.get("polarizability_bohr3") for m, row in r["molecules"].items()}}
+    if not per_group or not refs:
+        return None
+    comps = np.concatenate([np.ravel(r["polarizability_bohr3"]) for r in refs.values()])
+    out = {"n_molecules": len(refs),
+           "intrinsic_mae": float(np.abs(comps - np.median(comps)).mean()), "groups": {}}
+    for group, models in per_group.items():
+        # the ensemble: mean tensor over the group's models that did not fail
+        ens_err = []
+        for mol, ref in refs.items():
+            ts = [m["tensors"].get(mol) for m in models.values()]
+            ts = [t for t in ts if t is not None]
+            if ts:
+                ens_err.append(np.mean(ts, axis=0) - np.array(ref["polarizability_bohr3"]))
+        e = np.abs(np.ravel(ens_err)) if ens_err else np.zeros(0)
+        out["groups"][group] = {
+            "per_model": {n: {k: v for k, v in m.items() if k != "tensors"}
+                          for n, m in models.items()},
+            "mae": mean_std([m["mae"] for m in models.values()]),
+            "median": mean_std([m["median"] for m in models.values()]),
+            "error_rate": mean_std([m["error_rate"] for m in models.values()]),
+            "ensemble_mae": float(e.mean()) if e.size else None,
+            "ensemble_median": float(np.median(e)) if e.size else None,
+        }
+    return out
+
+
+# ---------------------------------------------------------------------- ir
+def stage_ir(study: Study) -> None:
+    from emlpack.bonding import bonding_changes
+    from emlpack.optimize import optimize
+    from emlpack.relax import relax_pairs
+    from emlpack.spectra import ir_spectrum
+
+    c = study.cfg.get("ir", {})
+    refs = dft_results(study)
+    if not refs:
+        study.log("ir: no DFT reference yet (run the dft stage), skipped")
+        return
+    for group, name, path in study.require_models():
+        target = study.workdir / "ir" / f"{name}.json"
+        if target.exists() and set(_read_json(target)["molecules"]) >= set(refs):
+            study.log(f"ir: {name} exists, skipped")
+            continue
+        model, _, _ = _load(path)
+        rows = {}
+        for mol, r in refs.items():
+            s = _dft_structure(r)
+            row: dict = {"failure": ""}
+            res = relax_pairs(model, s)[0]
+            if res.reason:
+                rows[mol] = {"failure": f"pair relaxation at the DFT geometry: {res.reason}"}
+                continue
+            try:
+                o = optimize(model, s.copy(pairs=res.pairs), fmax=float(c.get("fmax", 1e-4)),
+                             max_iterations=int(c.get("max_iterations", 100)))
+                spec = ir_spectrum(model, o.structure)
+            except (np.linalg.LinAlgError, ValueError, RuntimeError) as exc:
+                rows[mol] = {"failure": f"{type(exc).__name__}: {exc}"}
+                continue
+            changes = bonding_changes(s.numbers, s.positions, o.structure.positions)
+            row.update(converged=bool(o.converged), iterations=int(o.iterations),
+                       reason=o.reason, bonding_changes=changes,
+                       rmsd_vs_dft_A=float(np.sqrt(((o.structure.positions - s.positions) ** 2)
+                                                   .sum(1).mean())),
+                       frequencies=spec.frequencies.tolist(),
+                       intensities=spec.intensities.tolist())
+            if changes:
+                row["failure"] = "bonding changed: " + "; ".join(changes)
+            rows[mol] = row
+        _write_json(target, {"group": group, "name": name, "model": str(path),
+                             "molecules": rows})
+        study.work["ir"] += 1
+        study.log(f"ir: {name}: {len(rows)} molecules")
+    summary = ir_summary(study)
+    if summary and (study.work["ir"] or not (study.workdir / "figure4_ir.png").exists()):
+        figure4(study, summary)
+
+
+def _freq_mae(a, b) -> float | None:
+    a, b = np.sort(np.asarray(a)), np.sort(np.asarray(b))
+    if len(a) != len(b) or not len(a):
+        return None
+    return float(np.abs(a - b).mean())
+
+
+def ir_summary(study: Study) -> dict | None:
+    refs = dft_results(study)
+    out: dict = {"n_molecules": len(refs), "groups": {}}
+    for group, name, _ in study.models():
+        r = _read_json(study.workdir / "ir" / f"{name}.json")
+        if r is None:
+            continue
+        per_mol = {}
+        for mol, row in r["molecules"].items():
+            if mol in refs and "frequencies" in row:
+                per_mol[mol] = _freq_mae(row["frequencies"], refs[mol]["frequencies_cm-1"])
+        vals = [v for v in per_mol.values() if v is not None]
+        g = out["groups"].setdefault(group, {"per_model": {}})
+        g["per_model"][name] = {
+            "frequency_mae": float(np.mean(vals)) if vals else None,
+            "per_molecule": per_mol,
+            "failures": {m: row["failure"] for m, row in r["molecules"].items()
+                         if row.get("failure")}}
+    if not out["groups"]:
+        return None
+    for g in out["groups"].values():
+        g["frequency_mae"] = mean_std([m["frequency_mae"] for m in g["per_model"].values()])
+    return out
+
+
+def figure4(study: Study, summary: dict) -> Path | None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from emlpack.spectra import lorentzian
+
+    c = study.cfg.get("ir", {})
+    fwhm = float(c.get("fwhm", 10.0))
+    refs = dft_results(study)
+    mols = [m for m in c.get("figure_molecules", list(IR_MOLECULES)) if m in refs]
+    if not mols:
+        mols = list(refs)[:2]
+    if not mols:
+        return None
+    per_model = {name: _read_json(study.workdir / "ir" / f"{name}.json")
+                 for _, name, _ in study.models()}
+    grid = np.arange(0.0, 4000.0, 1.0)
+    fig, axes = plt.subplots(1, len(mols), figsize=(6.5 * len(mols), 4.2), squeeze=False)
+    for ax, mol in zip(axes[0], mols, strict=True):
+        ref = refs[mol]
+        ax.plot(grid, lorentzian(grid, ref["frequencies_cm-1"], ref["intensities_km_per_mol"],
+                                 fwhm), "k", lw=1.2, label=f"DFT ({ref['level']})")
+        for k, (group, colour) in enumerate((("aug", "C2"), ("noaug", "C3"))):
+            curves = [lorentzian(grid, r["molecules"][mol]["frequencies"],
+                                 r["molecules"][mol]["intensities"], fwhm)
+                      for name, r in per_model.items()
+                      if r and name.startswith(group + "-") and "frequencies"
+                      in r["molecules"].get(mol, {})]
+            if curves:
+                ax.plot(grid, np.mean(curves, axis=0), color=colour, lw=1.0,
+                        ls="-" if k == 0 else "--",
+                        label=f"eMLP {GROUP_LABEL[group]} (mean of {len(curves)})")
+        ax.set_title(f"{IR_MOLECULES.get(mol, mol)} ({mol})")
+        ax.set_xlabel("wavenumber (cm$^{-1}$)")
+        ax.set_ylabel(f"absorbance (km/mol/cm$^{{-1}}$, FWHM {fwhm:g} cm$^{{-1}}$)")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = study.workdir / "figure4_ir.png"
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    os.replace(tmp, path)
+    return path
+
+
+# ---------------------------------------------------------------------- md
+def _md_start(study: Study, row: dict):
+    """The DFT optimum with its Boys centres, else the start geometry (pairs guessed)."""
+    from emlpack.structure import Structure
+
+    r = _read_json(study.workdir / "dft" / f"{row['name']}.json")
+    if r is not None:
+        return _dft_structure(r), "DFT optimum"
+    numbers, pos, origin = _start_geometry(study, row)
+    return Structure(numbers=numbers, positions=pos, pairs=np.zeros((0, 3)),
+                     source=row["name"]), origin
+
+
+def stage_md(study: Study) -> None:
+    from ase.calculators.calculator import CalculationFailed
+
+    from emlpack.bonding import bonding_changes
+    from emlpack.io.extxyz import read_structures
+    from emlpack.md import MDWatchdogError, run_md
+    from emlpack.md_analysis import TrajectoryAnalysisError, analyze_trajectory
+
+    c = study.cfg.get("md", {})
+    dt_fs = float(c.get("dt_fs", 0.5))
+    steps = int(round(float(c.get("time_fs", 500.0)) / dt_fs))
+    discard = int(c.get("discard_steps", 10))
+    for group, name, path in study.require_models():
+        model = None
+        for row in study.test_molecules():
+            run = study.workdir / "md" / name / row["name"]
+            target = run / "analysis.json"
+            if target.exists():
+                continue
+            if model is None:
+                model, _, _ = _load(path)
+            s, origin = _md_start(study, row)
+            stopped = ""
+            t0 = time.perf_counter()
+            try:
+                run_md(model, s, steps, run, dt_fs=dt_fs,
+                       temperature_K=float(c.get("temperature_K", 300.0)), ensemble="nvt",
+                       seed=int(c.get("seed", 0)), relax=str(c.get("relax", "warm")),
+                       checkpoint_every=int(c.get("checkpoint_every", 50)),
+                       log_every=int(c.get("log_every", 100)))
+            except (MDWatchdogError, CalculationFailed) as exc:
+                stopped = f"{type(exc).__name__}: {exc}"
+            out: dict = {"group": group, "model": name, "molecule": row["name"],
+                         "start": origin, "steps": steps, "stopped": stopped,
+                         "wall_s": time.perf_counter() - t0}
+            try:
+                a = analyze_trajectory(run, discard_steps=discard)
+                out["analysis"] = a.as_dict()
+                out["classification"] = "unstable" if stopped else a.classification
+            except (TrajectoryAnalysisError, FileNotFoundError) as exc:
+                out["analysis"] = None
+                out["classification"] = "unstable"
+                out["analysis_error"] = str(exc)
+            frames = read_structures(run / "trajectory.xyz") if (run / "trajectory.xyz") \
+                .exists() else []
+            changes: list[str] = []
+            for f in frames:
+                changes = bonding_changes(s.numbers, s.positions, f.positions)
+                if changes:
+                    out["bonding_changed_at_step"] = int(f.info.get("step", -1))
+                    break
+            out["bonding_changed"] = bool(changes)
+            out["bonding_changes"] = changes
+            out["n_frames"] = len(frames)
+            _write_json(target, out)
+            study.work["md"] += 1
+            study.log(f"md: {name}/{row['name']}: {out['classification']}"
+                      + (f", bonding changed ({changes[0]})" if changes else "")
+                      + (f", stopped: {stopped}" if stopped else ""))
+    summary = md_summary(study)
+    figure = study.workdir / "figure3_md.png"
+    if summary and summary["analyses"] and (study.work["md"] or not figure.exists()):
+        from emlpack.md_analysis import ConservedAnalysis, plot_conserved
+
+        runs, labels, groups = [], [], []
+        for r in summary["analyses"]:
+            a = r["analysis"]
+            runs.append(ConservedAnalysis(
+                source=r["model"] + "/" + r["molecule"], n_atoms=a["n_atoms"],
+                n_frames=a["n_frames"], n_discarded=a["n_discarded"],
+                first_step=a["first_step"], last_step=a["last_step"],
+                stride_steps=a["stride_steps"], duration=a["duration_fs"],
+                slope=a["slope_eV_per_fs_per_atom"], intercept=a["intercept_eV_per_atom"],
+                max_jump=a["max_jump_eV_per_atom"], max_jump_step=a["max_jump_step"],
+                residual_std=a["residual_std_eV_per_atom"], drift=a["drift_eV_per_atom"],
+                classification=a["classification"]))
+            labels.append("")
+            groups.append(GROUP_LABEL[r["group"]])
+        counts = summary["groups"]
+        title = "; ".join(f"{GROUP_LABEL[g]}: {v['stable']}/{v['transition']}/{v['unstable']}"
+                          for g, v in counts.items()) + " (stable/transition/unstable)"
+        plot_conserved(runs, figure, labels=labels, groups=groups,
+                       title=title)
+
+
+def md_summary(study: Study) -> dict | None:
+    rows = []
+    for _, name, _ in study.models():
+        for row in study.test_molecules():
+            r = _read_json(study.workdir / "md" / name / row["name"] / "analysis.json")
+            if r is not None:
+                rows.append(r)
+    if not rows:
+        return None
+    groups: dict = {}
+    for r in rows:
+        g = groups.setdefault(r["group"], {"runs": 0, "stable": 0, "transition": 0,
+                                           "unstable": 0, "bonding_changed": 0, "stopped": 0,
+                                           "max_jump_max": None})
+        g["runs"] += 1
+        g[r["classification"]] += 1
+        g["bonding_changed"] += int(r["bonding_changed"])
+        g["stopped"] += int(bool(r["stopped"]))
+        jump = (r.get("analysis") or {}).get("max_jump_eV_per_atom")
+        if jump is not None:
+            g["max_jump_max"] = max(jump, g["max_jump_max"] or 0.0)
+    for g in groups.values():
+        g["unstable_pct"] = 100.0 * g["unstable"] / g["runs"]
+    return {"groups": groups, "runs": rows,
+            "analyses": [r for r in rows if r.get("analysis")]}
+
+
+# ---------------------------------------------------------------------- table
+def eval_summary(study: Study, set_name: str) -> dict | None:
+    """Mean ± std over each group's models of every Table 2/3 entry on ``set_name``."""
+    per = {}
+    for group, name, _ in study.models():
+        r = _read_json(study.workdir / "eval" / set_name / f"{name}.json")
+        if r is not None:
+            per.setdefault(group, []).append(r)
+    if not per:
+        return None
+    out: dict = {"groups": {}}
+    for group, rs in per.items():
+        g: dict = {"models": [r["name"] for r in rs], "n_structures": rs[0]["n_structures"],
+                   "static": {}, "dynamic": {}}
+        out["intrinsic_static"] = rs[0]["intrinsic"]
+        for stat in ("mae", "median"):
+            g["static"][stat] = {k: mean_std([r["static"][k][stat] for r in rs])
+                                 for k in ("energy", "forces", "pair_forces")}
+        if all("dynamic" in r for r in rs):
+            out["intrinsic_dynamic"] = rs[0]["dynamic"]["intrinsic"]
+            for stat in ("mae", "median"):
+                g["dynamic"][stat] = {k: mean_std([r["dynamic"][k][stat] for r in rs])
+                                      for k in ("energy", "forces", "dipole")}
+            g["dynamic"]["error_rate"] = mean_std([r["dynamic"]["error_rate"] for r in rs])
+        out["groups"][group] = g
+    return out
+
+
+def _ms(d: dict | None, scale: float = 1.0, digits: int = 1) -> str:
+    if not d or d.get("mean") is None:
+        return "–"
+    if d["n"] == 1:
+        return f"{scale * d['mean']:.{digits}f}"
+    return f"{scale * d['mean']:.{digits}f} (± {scale * d['std']:.{digits}f})"
+
+
+def _paper(p) -> str:
+    return f"{p[0]:g} (± {p[1]:g})"
+
+
+def _val(v, digits: int = 1, scale: float = 1.0) -> str:
+    return "–" if v is None else f"{scale * v:.{digits}f}"
+
+
+def targets(result: dict) -> list[dict]:
+    """Issue 15's targets with the measured values (None when not measured yet)."""
+    out = []
+    ev = (result.get("evaluation") or {}).get("test")
+    ratio = None
+    if ev and "aug" in ev["groups"]:
+        f = ev["groups"]["aug"]["static"]["mae"]["forces"]["mean"]
+        ratio = f / ev["intrinsic_static"]["forces"] if f else None
+    out.append({"target": "static core-force MAE (augmented) <= 1/10 of the intrinsic"
+                          " variability (paper 1/23)",
+                "measured": None if ratio is None else f"1/{1 / ratio:.1f}" if ratio else "0",
+                "met": None if ratio is None else ratio <= 0.1})
+    rate = noaug = None
+    if ev and "aug" in ev["groups"] and ev["groups"]["aug"]["dynamic"]:
+        rate = 100 * ev["groups"]["aug"]["dynamic"]["error_rate"]["mean"]
+        if "noaug" in ev["groups"] and ev["groups"]["noaug"]["dynamic"]:
+            noaug = 100 * ev["groups"]["noaug"]["dynamic"]["error_rate"]["mean"]
+    out.append({"target": "augmented dynamic error rate <= 2 % (paper 0.4 %), below the"
+                          " non-augmented models'",
+                "measured": None if rate is None else
+                f"{rate:.2f} % (non-augmented {_val(noaug, 2)} %)",
+                "met": None if rate is None else bool(rate <= 2.0 and (noaug is None
+                                                                         or rate < noaug))})
+    pol = result.get("polarizability")
+    med = None
+    if pol and "aug" in pol["groups"]:
+        med = pol["groups"]["aug"]["median"]["mean"]
+    out.append({"target": "polarizability median error (augmented) <= 0.5 bohr³ (paper 0.31)",
+                "measured": None if med is None else f"{med:.3f} bohr³",
+                "met": None if med is None else med <= 0.5})
+    ir = result.get("ir")
+    mae = None
+    if ir and "aug" in ir["groups"]:
+        mae = ir["groups"]["aug"]["frequency_mae"]["mean"]
+    out.append({"target": "harmonic IR frequency MAE (augmented) <= 30 cm⁻¹ (paper ~15)",
+                "measured": None if mae is None else f"{mae:.1f} cm⁻¹",
+                "met": None if mae is None else mae <= 30.0})
+    md = result.get("md")
+    g = (md or {}).get("groups", {}).get("aug")
+    ok = None
+    if g:
+        ok = (g["max_jump_max"] is not None and g["max_jump_max"] < 0.01
+              and g["unstable"] == 0 and g["bonding_changed"] == 0)
+    out.append({"target": "every augmented MD run: max |ΔE_cons| < 0.01 eV/atom and no change"
+                          " of bonding",
+                "measured": None if not g else
+                f"{g['runs']} runs, largest jump {_val(g['max_jump_max'], 5)} eV/atom,"
+                f" {g['unstable']} unstable, {g['bonding_changed']} with bonding changed",
+                "met": ok})
+    return out
+
+
+def data_summary(study: Study) -> dict:
+    data = study.shards()
+    split = data.split_indices()
+    mols = {k: len({data.structures[i].info.get("molecule_id") for i in v})
+            for k, v in split.items()}
+    return {"path": str(study.data), "shards": len(data.shards),
+            "configurations": len(data.structures),
+            "by_split": {k: {"configurations": int(len(v)), "molecules": mols[k]}
+                         for k, v in split.items()},
+            "molecules_listed": len(data.molecules),
+            "hydrides": data.hydrides is not None, "failures": len(data.failures)}
+
+
+def stage_table(study: Study, out_dir: Path | None = None) -> dict:
+    out_dir = Path(out_dir or study.cfg.get("results_dir", HERE))
+    models = study.models()
+    training = {}
+    for _, name, path in models:
+        training[name] = _read_json(path.parent / "done.json")
+    result = {
+        "generated": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "status": study.cfg.get("status", "preliminary"),
+        "data": data_summary(study),
+        "models": {name: str(path) for _, name, path in models},
+        "training": training,
+        "train_config": study.cfg.get("training", {}),
+        "dft_level": study.cfg.get("dft", {}).get("level", "paper"),
+        "evaluation": {s: eval_summary(study, s) for s in ("test", "pbe0_subset")},
+        "polarizability": polarizability_summary(study),
+        "ir": ir_summary(study),
+        "md": md_summary(study),
+        "paper": PAPER,
+    }
+    if result["md"]:
+        result["md"].pop("analyses", None)
+    second = study.cfg.get("evaluate", {}).get("second_test_set")
+    if result["evaluation"]["pbe0_subset"] is None:
+        result["evaluation"]["pbe0_subset_note"] = (
+            f"{second}: not found or not evaluated; the second test set was skipped")
+    result["targets"] = targets(result)
+    _write_json(out_dir / "results.json", result)
+    _write_text(out_dir / "results.md", markdown(result, study.cfg.get("notes", "")))
+    study.work["table"] += 1
+    study.log(f"table: {out_dir / 'results.md'}")
+    return result
+
+
+def _static_md(ev: dict, title: str) -> list[str]:
+    keys = ("energy", "forces", "pair_forces")
+    i = ev["intrinsic_static"]
+    p = PAPER["static"]
+    lines = [f"### Table 2 (static errors): {title}", "",
+             "Electron pairs at the DFT centres. Ours: mean (± std over models); paper: the"
+             " paper's test set (eQM7, 4 models per group).", "",
+             "| | energy [meV/atom] | core forces [meV/Å] | pair forces [meV/Å] |",
+             "|---|---|---|---|",
+             "| intrinsic variability (MAE), ours | "
+             + " | ".join(f"{1000 * i[k]:.1f}" for k in keys) + " |",
+             "| intrinsic variability (MAE), paper | "
+             + " | ".join(f"{p['intrinsic'][k]:g}" for k in keys) + " |"]
+    for group in ("noaug", "aug"):
+        g = ev["groups"].get(group)
+        for stat, label in (("mae", "MAE"), ("median", "median error")):
+            if g:
+                lines.append(f"| {GROUP_LABEL[group]}: {label}, ours | " + " | ".join(
+                    _ms(g["static"][stat][k], 1000, 1) for k in keys) + " |")
+            lines.append(f"| {GROUP_LABEL[group]}: {label}, paper | " + " | ".join(
+                _paper(p[group][stat][k]) for k in keys) + " |")
+    return lines + [""]
+
+
+def _dynamic_md(ev: dict, pol: dict | None, title: str) -> list[str]:
+    keys = ("energy", "forces", "dipole")
+    p = PAPER["dynamic"]
+    i = ev.get("intrinsic_dynamic")
+    if not i:
+        return []
+    scale = {"energy": 1000, "forces": 1000, "dipole": 1}
+    digits = {"energy": 1, "forces": 1, "dipole": 3}
+    lines = [f"### Table 3 (dynamic errors): {title}", "",
+             "Electron pairs relaxed; polarizability at the DFT optima of the test molecules"
+             " (components, pairs relaxed, cores clamped) against our DFT finite-field values.",
+             "",
+             "| | energy [meV/atom] | core forces [meV/Å] | dipole norm [D] |"
+             " polarizability [bohr³] |", "|---|---|---|---|---|",
+             "| intrinsic variability (MAE), ours | " + " | ".join(
+                 f"{scale[k] * i[k]:.{digits[k]}f}" for k in keys)
+             + f" | {_val(pol and pol['intrinsic_mae'], 2)} |",
+             "| intrinsic variability (MAE), paper | " + " | ".join(
+                 f"{p['intrinsic'][k]:g}" for k in keys) + f" | {p['intrinsic']['polarizability']}"
+             " |"]
+    for group in ("noaug", "aug"):
+        g = ev["groups"].get(group)
+        pg = (pol or {}).get("groups", {}).get(group)
+        for stat, label in (("mae", "MAE"), ("median", "median error")):
+            if g and g["dynamic"]:
+                lines.append(
+                    f"| {GROUP_LABEL[group]}: {label}, ours | " + " | ".join(
+                        _ms(g["dynamic"][stat][k], scale[k], digits[k]) for k in keys)
+                    + f" | {_ms(pg[stat], 1, 2) if pg else '–'} |")
+            lines.append(f"| {GROUP_LABEL[group]}: {label}, paper | " + " | ".join(
+                _paper(p[group][stat][k]) for k in keys)
+                + f" | {_paper(p[group][stat]['polarizability'])} |")
+        if g and g["dynamic"]:
+            lines.append(f"| {GROUP_LABEL[group]}: error rate, ours |"
+                         f" {_ms(g['dynamic']['error_rate'], 100, 1)} % | | |"
+                         f" {_ms(pg['error_rate'], 100, 1) + ' %' if pg else '–'} |")
+        lines.append(f"| {GROUP_LABEL[group]}: error rate, paper | {_paper(p[group]['error_rate'])}"
+                     f" % | | | {_paper(p[group]['polarizability_error_rate'])} % |")
+    return lines + [""]
+
+
+def markdown(result: dict, notes: str = "") -> str:
+    d = result["data"]
+    lines = ["# mini-eQM7: the paper's molecular study", "",
+             f"Generated by `examples/eqm7/run_study.py table` on {result['generated']}."
+             f" Status: **{result['status']}**.", ""]
+    if notes:
+        lines += [notes.strip(), ""]
+    lines += [
+        f"- data: `{d['path']}`, {d['shards']} shard(s), {d['configurations']} configurations"
+        f" (train {d['by_split']['train']['configurations']} of"
+        f" {d['by_split']['train']['molecules']} molecules, val"
+        f" {d['by_split']['val']['configurations']} of {d['by_split']['val']['molecules']},"
+        f" test {d['by_split']['test']['configurations']} of"
+        f" {d['by_split']['test']['molecules']}); {d['molecules_listed']} molecules listed;"
+        f" hydride references: {'yes' if d['hydrides'] else 'no'}",
+        f"- models: {', '.join(result['models']) or 'none'}",
+        f"- DFT reference level (dft stage): `{result['dft_level']}`", ""]
+    for set_name, title in (("test", "test molecules of the card"),
+                            ("pbe0_subset", "the authors' six molecules (eqm7_pbe0_subset.xyz)")):
+        ev = result["evaluation"].get(set_name)
+        if not ev:
+            lines += [f"*{title}: not evaluated"
+                      + (f" ({result['evaluation'].get('pbe0_subset_note')})"
+                         if set_name == "pbe0_subset" else "") + ".*", ""]
+            continue
+        n = next(iter(ev["groups"].values()))["n_structures"]
+        lines += _static_md(ev, f"{title}, {n} configurations")
+        lines += _dynamic_md(ev, result["polarizability"] if set_name == "test" else None,
+                             f"{title}, {n} configurations")
+    pol = result["polarizability"]
+    if pol:
+        lines += [f"Polarizability: {pol['n_molecules']} test molecules with a DFT reference;"
+                  " ensemble (mean tensor of a group) MAE / median: "
+                  + ", ".join(f"{GROUP_LABEL[g]} {_val(v['ensemble_mae'], 3)} /"
+                              f" {_val(v['ensemble_median'], 3)} bohr³"
+                              for g, v in pol["groups"].items()) + ".", ""]
+    ir = result["ir"]
+    lines += ["### Figure 4 and harmonic IR frequencies", ""]
+    if ir:
+        lines += [f"Frequency MAE over {ir['n_molecules']} test molecules (modes matched in"
+                  " ascending order), mean (± std) over models: "
+                  + ", ".join(f"{GROUP_LABEL[g]} {_ms(v['frequency_mae'], 1, 1)} cm⁻¹"
+                              for g, v in ir["groups"].items())
+                  + f"; paper ~{PAPER['ir']['frequency_mae_cm-1']:g} cm⁻¹."
+                  " Figure: `figure4_ir.png` in the work directory.", ""]
+    else:
+        lines += ["*not computed yet (dft and ir stages).*", ""]
+    md = result["md"]
+    lines += ["### Figure 3: MD stability (500 fs NVT, 300 K, 0.5 fs)", ""]
+    if md:
+        lines += ["| | runs | stable | transition | unstable | bonding changed | stopped |"
+                  " largest jump [eV/atom] |", "|---|---|---|---|---|---|---|---|"]
+        for g, v in md["groups"].items():
+            lines.append(f"| {GROUP_LABEL[g]} | {v['runs']} | {v['stable']} | {v['transition']}"
+                         f" | {v['unstable']} | {v['bonding_changed']} | {v['stopped']} |"
+                         f" {_val(v['max_jump_max'], 5)} |")
+        lines += ["", f"Paper: {PAPER['md']['noaug_unstable_pct']} % of the non-augmented runs"
+                  " unstable, none of the augmented ones (the paper does not check bonding)."
+                  " Figure: `figure3_md.png` in the work directory.", ""]
+    else:
+        lines += ["*not run yet (md stage).*", ""]
+    lines += ["### Targets of issue 15", "", "| target | measured | met |", "|---|---|---|"]
+    for t in result["targets"]:
+        met = "–" if t["met"] is None else ("yes" if t["met"] else "no")
+        lines.append(f"| {t['target']} | {t['measured'] or 'not measured yet'} | {met} |")
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------- driver
+def run(stages: list[str], cfg: dict, log=print) -> Study:
+    """Run ``stages`` in order (``"all"``: every stage)."""
+    study = Study(copy.deepcopy(cfg), log)
+    order: list[str] = []
+    for s in stages:
+        order += list(STAGES) if s == "all" else [s]
+    for s in order:
+        if s not in STAGES:
+            raise SystemExit(f"unknown stage {s!r} ({', '.join(STAGES)}, all)")
+    for s in order:
+        t0 = time.perf_counter()
+        {"train": stage_train, "evaluate": stage_evaluate, "dft": stage_dft,
+         "polarizability": stage_polarizability, "ir": stage_ir, "md": stage_md,
+         "table": stage_table}[s](study)
+        log(f"{s}: {time.perf_counter() - t0:.1f} s")
+    return study
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("stages", nargs="+", help=f"{', '.join(STAGES)} or all; key=value overrides")
+    p.add_argument("--config", default=str(HERE / "config.yaml"))
+    args = p.parse_args(argv)
+    stages = [s for s in args.stages if "=" not in s]
+    overrides = [s for s in args.stages if "=" in s]
+    run(stages, load_config(args.config, overrides),
+        log=lambda m: print(f"[{dt.datetime.now(dt.timezone.utc):%H:%M:%S}] {m}", flush=True))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
