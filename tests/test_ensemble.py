@@ -14,7 +14,14 @@ from emlpack.data.references import HydrideReference, hydride_coefficients, load
 from emlpack.ensemble import EnsembleError, ModelEnsemble, as_ensemble, load_member
 from emlpack.io import read_structures, structure_to_atoms
 from emlpack.nn.checkpoint import save_model
-from emlpack.pretrained import PretrainedError, available, load_pretrained, resolve_model
+from emlpack.pretrained import (
+    PretrainedError,
+    available,
+    export_pretrained,
+    load_pretrained,
+    model_card,
+    resolve_model,
+)
 from emlpack.relax import RelaxOptions
 from tests.conftest import shared_path
 from tests.test_reference_fixtures import load_model
@@ -180,3 +187,26 @@ def test_mixed_ensembles_are_refused(checkpoints, models):
     _, paths = checkpoints
     with pytest.raises(EnsembleError, match="disagree"):
         as_ensemble([paths[0], models[1]])
+
+
+def test_export_pretrained_float32_round_trip(checkpoints, tmp_path):
+    folder, paths = checkpoints
+    root = tmp_path / "pretrained"
+    files = export_pretrained(paths, root / "toy", "# toy\n\ntwo perturbed fixture models\n")
+    assert [f.name for f in files] == ["model-0.pt", "model-1.pt", "card.md"]
+    assert model_card("toy", root).startswith("# toy")
+    s = _ethanol()
+    energies = {}
+    for label, model in (("full", folder), ("shipped", "toy")):
+        atoms = structure_to_atoms(s)
+        atoms.calc = EMLPCalculator(model if label == "full" else
+                                    load_pretrained(model, root=root), relax_pairs=False)
+        energies[label] = (atoms.get_potential_energy(), atoms.get_forces())
+    # float32 weights: energies on the DFT scale within float32 rounding of the weights
+    assert energies["shipped"][0] == pytest.approx(energies["full"][0], abs=2e-3)
+    np.testing.assert_allclose(energies["shipped"][1], energies["full"][1], atol=2e-3)
+    with pytest.raises(PretrainedError, match="no training reference"):
+        from emlpack.nn.checkpoint import save_model as _save
+
+        bare = _save(load_member(paths[0]).model, tmp_path / "bare.pt")
+        export_pretrained([bare], tmp_path / "x", "")

@@ -83,3 +83,30 @@ def model_card(name: str, root: Path | None = None) -> str:
     if not path.is_file():
         raise PretrainedError(f"pretrained model {name!r} has no card installed")
     return path.read_text()
+
+
+def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: str,
+                      dtype: torch.dtype = torch.float32) -> list[Path]:
+    """Write trained checkpoints as a shippable pretrained model: ``folder/model-K.pt`` with
+    weights in ``dtype``, only the metadata a user needs (reference, elements, model config,
+    data path and split), and ``folder/card.md``. Returns the written files."""
+    from emlpack.nn.checkpoint import load_model, read_checkpoint, save_model
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    keep = ("reference", "elements", "data_path", "split", "epoch", "val")
+    written = []
+    for k, path in enumerate(checkpoints):
+        meta = read_checkpoint(path).get("metadata", {}) or {}
+        if "reference" not in meta:
+            raise PretrainedError(f"{path}: no training reference in the metadata (not a"
+                                  " checkpoint written by `emlp train`)")
+        model = load_model(path, dtype)
+        out = {key: meta[key] for key in keep if key in meta}
+        out["source_checkpoint"] = Path(path).name
+        written.append(save_model(model, folder / f"model-{k}.pt", out))
+    card_path = folder / "card.md"
+    tmp = card_path.with_name(".card.md.tmp")
+    tmp.write_text(card)
+    tmp.replace(card_path)
+    return [*written, card_path]
