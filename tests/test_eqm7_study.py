@@ -181,3 +181,43 @@ def test_rerun_redoes_nothing(study_run):
     assert sum(again.work.values()) == 0, again.work
     assert {p: p.stat().st_mtime_ns for p in watched} == before
     assert any("skipped" in line for line in lines)
+
+
+@pytest.mark.slow
+def test_dft_route_matches_finite_differences():
+    """The dft stage's IR route (~30 s): Born charges from the field-perturbed forces equal the
+    finite-difference dipole derivatives, and the frequencies equal PySCF's harmonic analysis."""
+    require("pyscf")
+    from pyscf.hessian import thermo
+
+    from emlpack.qm.labeling import pyscf_hessian
+    from emlpack.qm.pyscf_labeler import PySCFLabeler
+    from emlpack.units import FIELD_AU_IN_V_PER_A
+
+    mod = _study_module()
+    lab = PySCFLabeler("tiny", boys_starts=1)
+    z = np.array([8, 1, 1])
+    r = np.array([[0.0, 0.0, 0.12], [0.0, 0.76, -0.47], [0.0, -0.76, -0.47]])
+    f = 1e-3 * FIELD_AU_IN_V_PER_A
+    born = np.zeros((3, 9))
+    for a in range(3):
+        e = np.zeros(3)
+        e[a] = f
+        plus, minus = lab(z, r, field=e, localize=False), lab(z, r, field=-e, localize=False)
+        born[a] = ((plus.forces - minus.forces) / (2 * f)).ravel()
+    h = 1e-3
+    fd = np.zeros_like(born)
+    for i in range(9):
+        d = np.zeros(9)
+        d[i] = h
+        plus = lab(z, r + d.reshape(3, 3), forces=False, localize=False)
+        minus = lab(z, r - d.reshape(3, 3), forces=False, localize=False)
+        fd[:, i] = (plus.dipole - minus.dipole) / (2 * h)
+    assert np.abs(born - fd).max() < 1e-3 * np.abs(fd).max() + 1e-4
+    hess = pyscf_hessian(lab, z, r)
+    ir = mod.harmonic_ir(hess, born, z, r)
+    mol, mf = lab.build(z, r, np.zeros(3), 0.0)
+    mf.kernel()
+    ref = thermo.harmonic_analysis(mol, mf.Hessian().kernel())["freq_wavenumber"]
+    assert np.allclose(ir["frequencies"], np.real(ref), atol=0.5)
+    assert np.all(ir["intensities"] > 0)
