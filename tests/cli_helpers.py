@@ -6,9 +6,6 @@ from __future__ import annotations
 import contextlib
 import io
 
-import numpy as np
-import pytest
-
 from emlpack.cli import main
 
 #: water cores and its four valence pairs (Å), roughly the Boys centres
@@ -39,18 +36,15 @@ def run(argv: list[str]) -> tuple[int, str, str]:
     return rc, out.getvalue(), err.getvalue()
 
 
-@pytest.fixture(scope="session")
-def model_file(tmp_path_factory):
-    """A small random eMLP (H, C, N, O; float64) saved as an emlpack checkpoint."""
+def save_test_model(folder, seed: int = 0) -> object:
+    """A small random eMLP (H, C, N, O; float64) saved as ``folder/model.pt``; ``seed=1``
+    keeps the electron pairs of water at a minimum (what MD needs)."""
     import torch
 
     from emlpack.nn.checkpoint import save_model
     from tests.nn.helpers import random_model
 
     torch.set_num_threads(1)
-    path = tmp_path_factory.mktemp("model") / "model.pt"
-    save_model(random_model(0), path)
+    path = folder / "model.pt"
+    save_model(random_model(seed), path)
     return path
-
-
-__all__ = ["WATER_CORES", "WATER_PAIRS", "model_file", "np", "run", "water_rows", "write_xyz"]

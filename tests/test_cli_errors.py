@@ -18,7 +18,12 @@ from emlpack.errors import (
     InputError,
     ModelFileError,
 )
-from tests.cli_helpers import model_file, run, water_rows, write_xyz  # noqa: F401
+from tests.cli_helpers import run, save_test_model, water_rows, write_xyz
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory):
+    return save_test_model(tmp_path_factory.mktemp("model"))
 
 
 def _error(capsys, argv, code=2):
@@ -217,6 +222,8 @@ def test_torch_file_that_is_not_an_emlpack_model(tmp_path, capsys):
     (["--dt", "-0.5"], "--dt must be positive, got -0.5"),
     (["--temperature", "-300"], "--temperature must be non-negative, got -300"),
     (["--record-every", "0"], "--record-every must be positive, got 0"),
+    (["--temperature", "0"], "--temperature must be positive for NVT (the thermostat mass is"
+     " proportional to T); use --nve for a run from rest"),
     (["--threads", "0"], "--threads must be at least 1, got 0"),
 ])
 def test_md_run_lengths_are_checked_first(tmp_path, capsys, args, message):

@@ -22,6 +22,7 @@ from emlpack.cli.common import (
     settings,
     write_json,
 )
+from emlpack.errors import InputError
 
 
 def add_md(sub) -> None:
@@ -62,6 +63,9 @@ def add_md(sub) -> None:
         positive(args.steps, "--steps")
         positive(args.dt, "--dt")
         positive(args.temperature, "--temperature", allow_zero=True)
+        if not args.nve and args.temperature == 0:
+            raise InputError("--temperature must be positive for NVT (the thermostat mass is"
+                             " proportional to T); use --nve for a run from rest")
         positive(args.fmax, "--fmax")
         positive(args.tdamp, "--tdamp")
         for name in ("record_every", "checkpoint_every", "curvature_every"):
@@ -123,8 +127,11 @@ def add_md_analysis(sub) -> None:
         from emlpack.md_analysis import run_analysis
 
         positive(args.discard, "--discard", allow_zero=True)
-        run_analysis(args.trajectories, args.plot, args.output, args.discard, args.groups,
-                     args.series)
+        try:
+            run_analysis(args.trajectories, args.plot, args.output, args.discard, args.groups,
+                         args.series)
+        except ValueError as exc:  # the message names the file and frame
+            raise InputError(str(exc)) from exc
         return 0
 
     p.set_defaults(func=run)
@@ -153,9 +160,12 @@ def add_md_ir(sub) -> None:
         positive(args.temperature, "--temperature")
         positive(args.discard, "--discard", allow_zero=True)
         positive(args.padding, "--padding")
-        run_md_ir(args.trajectory, args.output, args.plot, args.harmonic, args.temperature,
-                  args.discard, window=args.window, correction=args.correction,
-                  padding=args.padding)
+        try:
+            run_md_ir(args.trajectory, args.output, args.plot, args.harmonic,
+                      args.temperature, args.discard, window=args.window,
+                      correction=args.correction, padding=args.padding)
+        except ValueError as exc:  # too few frames, no dipoles: the message names the file
+            raise InputError(str(exc)) from exc
         return 0
 
     p.set_defaults(func=run)
