@@ -402,6 +402,36 @@ def test_md_dipole_ir_matches_harmonic_ir(water_minimum):
     print(f"{evaluations:.2f} evaluations per step")
 
 
+def test_ase_velocity_verlet_on_the_calculator_follows_the_bo_trajectory(water_minimum):
+    """The default-suite version of the slow test below: 20 steps (10 fs) of ase VelocityVerlet on
+    EMLPCalculator give the dipoles and total energies of the test's own BO velocity Verlet
+    (Å/fs, amu, eV) from the same start, to 1e-6 e·Å and 1e-6 eV (pairs to 1e-7 eV/Å in both)."""
+    from ase import units
+    from ase.md.verlet import VelocityVerlet
+
+    from emlpack.calculator import EMLPCalculator
+    from emlpack.io import structure_to_atoms
+    from emlpack.relax import RelaxOptions
+
+    model, s, harmonic, h_pp_inv = water_minimum
+    temperature, dt, n_steps = 20.0, 0.5, 20
+    v0 = _mode_velocities(harmonic, atomic_masses[s.numbers], temperature, seed=1)
+    dipoles_ref, energies_ref, _ = _bo_dynamics(model, s, h_pp_inv, v0, dt, n_steps, fmax=1e-7)
+    atoms = structure_to_atoms(s)
+    atoms.calc = EMLPCalculator(model, relax_options=RelaxOptions(fmax=1e-7))
+    atoms.set_velocities(v0 * units.Ang / units.fs)  # Å/fs -> ASE units
+    dipoles, energies = [], []
+    dyn = VelocityVerlet(atoms, timestep=dt * units.fs)
+    dyn.attach(lambda: (dipoles.append(atoms.get_dipole_moment()),
+                        energies.append(atoms.get_total_energy())), interval=1)
+    dyn.run(n_steps - 1)
+    dipoles = np.array(dipoles)
+    assert dipoles.shape == dipoles_ref.shape
+    assert np.ptp(dipoles_ref, axis=0).max() > 1e-3  # the dipole does oscillate
+    np.testing.assert_allclose(dipoles, dipoles_ref, atol=1e-6, rtol=0)
+    np.testing.assert_allclose(energies, energies_ref, atol=1e-6, rtol=0)
+
+
 @pytest.mark.slow
 def test_md_with_ase_velocity_verlet_and_calculator_matches_harmonic_ir(water_minimum):
     """The product path: ase VelocityVerlet on EMLPCalculator (pairs relaxed by relax_pairs
