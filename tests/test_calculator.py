@@ -120,3 +120,28 @@ def test_broken_pairs_are_reported(model, methane):
     methane.calc.relax_options.max_iterations = 3
     with pytest.raises(CalculationFailed, match="relaxation failed"):
         methane.get_potential_energy()
+
+
+def test_periodic_stress_is_the_strain_derivative_of_the_energy(model):
+    """Independent of the model's stress code: sigma = (1/V) dE/d(eps) by central differences
+    of the calculator's energy, cores, pairs and cell strained together (ASE sign, eV/Å^3)."""
+    s = read_structures(shared_path("data/beta_glycine_pbe_wannier.xyz"))[0]
+    s = s.copy(field=np.zeros(3))
+    atoms = structure_to_atoms(s)
+    atoms.calc = calc(model, relax_pairs=False)
+    stress = atoms.get_stress(voigt=False)
+    assert np.abs(stress).max() > 1e-3  # a stressed cell: the check is not about zeros
+    h = 1e-5
+    for i, j in [(0, 0), (2, 2), (0, 1), (1, 2)]:
+        e = []
+        for sign in (1, -1):
+            eps = np.zeros((3, 3))
+            eps[i, j] += sign * h / 2
+            eps[j, i] += sign * h / 2
+            deform = np.eye(3) + eps
+            strained = structure_to_atoms(s.copy(positions=s.positions @ deform,
+                                                 pairs=s.pairs @ deform, cell=s.cell @ deform))
+            strained.calc = calc(model, relax_pairs=False)
+            e.append(strained.get_potential_energy())
+        fd = (e[0] - e[1]) / (2 * h) / atoms.get_volume()
+        assert stress[i, j] == pytest.approx(fd, abs=1e-7 * np.abs(stress).max() + 1e-9), (i, j)
