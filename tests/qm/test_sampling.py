@@ -173,3 +173,27 @@ def test_cell_nms_statistics_and_rigid_body_free():
         assert np.allclose(q.T @ d, 0.0, atol=1e-10)
     expected = 0.5 * (n - 6) * BOLTZMANN_EV_K * t
     assert abs(np.mean(energies) - expected) < 0.05 * expected
+
+
+def test_soft_modes_are_floored_at_the_minimum_force_constant(ethanol):
+    """docs/labeling.md: force constants below 0.06 eV/Å²/amu are raised to it, so a nearly
+    free mode gets the amplitude of a 0.06 eV/Å²/amu mode, not a huge one."""
+    from emlpack.qm.sampling import MIN_MODE_FORCE_CONSTANT
+
+    assert MIN_MODE_FORCE_CONSTANT == 0.06
+    h = _synthetic_hessian(ethanol.positions)
+    k, modes = normal_modes(ethanol.numbers, ethanol.positions, h)
+    soft = k.copy()
+    soft[0] = 1e-4  # a nearly free rotor
+    t, n = 600.0, 4000
+    rng = np.random.default_rng(3)
+    q = []
+    for _ in range(n):
+        s = normal_mode_sample(ethanol.numbers, ethanol.positions, h, t, rng, n_modes=len(k),
+                               modes=(soft, modes))
+        dx = (s.positions - ethanol.positions).ravel() * np.repeat(
+            np.sqrt(masses_of(ethanol.numbers)), 3)
+        q.append(modes[:, 0] @ dx)  # mass-weighted amplitude of the soft mode
+    var, expected = np.var(q), BOLTZMANN_EV_K * t / 0.06
+    assert abs(var - expected) < 5 * expected * np.sqrt(2.0 / n), (var, expected)
+    assert var < 1e-2 * BOLTZMANN_EV_K * t / 1e-4  # far below the unfloored variance
