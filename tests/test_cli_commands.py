@@ -99,7 +99,7 @@ def test_ir_and_its_plot(model, model_file, water_file, tmp_path):
     assert text.strip().splitlines()[-1].startswith("done with warnings")
 
 
-#: a distorted water whose O-H bonds the random model (seed 0) stretches to 1.44 Å
+#: a distorted water whose O-H bond(s) the random model (seed 0) stretches to ~1.44 Å
 DISTORTED_WATER = [("O", 0.00118216, 0.04504637, -0.03558404),
                    ("H", 0.80186494, 0.56718315, -0.00766736),
                    ("H", -0.72422974, 0.57691991, 0.00495937),
@@ -122,7 +122,7 @@ def test_optimize_reports_broken_bonds_and_writes_pairs_or_not(model, model_file
     np.testing.assert_allclose(data["energy_eV"], model.evaluate(s)["energy"], rtol=1e-8)
     np.testing.assert_allclose(data["pairs_A"], s.pairs, atol=1e-6)
     # this random model stretches the O-H bonds: reported, never a plain "converged"
-    assert any(w.startswith("bonding changed: bond O0-H1") for w in data["warnings"])
+    assert any(w.startswith("bonding changed: bond O0-H") for w in data["warnings"])
     assert "with warnings" in text.strip().splitlines()[-1]
     plain = tmp_path / "plain.xyz"
     assert run(["optimize", str(model_file), str(water_file), "-o", str(plain), "--relax",
@@ -289,3 +289,57 @@ def test_label_tiny_level(tmp_path):
                          "-s", "prepare.optimize=false"])
     assert rc == 0, err + text
     assert out.exists()
+
+
+def test_field_stored_in_the_file_is_printed_and_recorded(model_file, tmp_path):
+    path = write_xyz(tmp_path / "wf.xyz", water_rows(4),
+                     comment='Properties=species:S:1:pos:R:3 external_field="0.44 0 0"'
+                     ' pbc="F F F"')
+    out = tmp_path / "pol.json"
+    rc, text, _ = run(["polarizability", str(model_file), str(path), "--relax", "none",
+                       "-o", str(out), "--quiet"])
+    assert rc == 0
+    assert "field: [0.44 0.   0.  ] V/Å (from the structure file)" in text
+    data = json.loads(out.read_text())
+    assert data["field_V_per_A"] == [0.44, 0.0, 0.0]
+    assert data["field_source"] == "the structure file"
+
+
+def test_split_pairs_gives_ase_the_atoms_alone(model_file, tmp_path):
+    import ase.io
+
+    from emlpack.io import split_pairs
+
+    path = write_xyz(tmp_path / "w.xyz", water_rows(4))
+    with_pairs = ase.io.read(path)
+    assert with_pairs.get_chemical_symbols().count("Es") == 4  # einsteinium to ASE
+    atoms = split_pairs(with_pairs)
+    assert atoms.get_chemical_symbols() == ["O", "H", "H"]
+    np.testing.assert_allclose(atoms.info["electron_pairs"], [r[1:] for r in water_rows(4)[3:]])
+    np.testing.assert_allclose(atoms.get_center_of_mass(),
+                               with_pairs[:3].get_center_of_mass())
+
+
+def test_relabel_one_frame_at_the_tiny_level(tmp_path):
+    src = write_xyz(tmp_path / "w.xyz", water_rows(4),
+                    comment='Properties=species:S:1:pos:R:3 energy=0.0 pbc="F F F"')
+    out = tmp_path / "out.xyz"
+    rc, text, err = run(["relabel", str(src), "-o", str(out), "--level", "tiny",
+                         "--boys-starts", "1", "--quiet"])
+    assert rc == 0, err + text
+    s = read_structures(out)[0]
+    assert s.n_pairs == 4 and s.energy is not None and s.energy != 0.0
+
+
+def test_interrupted_label_says_it_resumes(tmp_path, monkeypatch):
+    import emlpack.qm.labeling
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(emlpack.qm.labeling, "run_labeling", interrupted)
+    path = write_xyz(tmp_path / "mol.xyz", WATER_CORES)
+    rc, _, err = run(["label", str(path), "-o", str(tmp_path / "d.h5"), "--workers", "0"])
+    assert rc == 130
+    assert err.strip().splitlines()[-1] == (
+        "emlp label: interrupted; re-run the same command to resume")

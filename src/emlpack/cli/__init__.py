@@ -27,7 +27,10 @@ def build_parser() -> argparse.ArgumentParser:
     from emlpack import __version__
     from emlpack.cli import data, dynamics, properties, training
 
-    parser = argparse.ArgumentParser(prog="emlp", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="emlp", description="emlpack: the electron machine-learning potential (eMLP):"
+        " label reference data, train, evaluate, and compute properties and MD with a model.",
+        epilog="'emlp COMMAND --help' shows a command's options and defaults.")
     parser.add_argument("--version", action="version", version=f"emlpack {__version__}")
     parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")

@@ -379,5 +379,7 @@ def apply_field(s, args, where: str, log: Log):
         s = s.copy(field=np.asarray(requested, float))
     if not np.any(s.field):
         source = "none"
-    log(f"field: {np.array2string(s.field, precision=5)} V/Å (from {source})")
+        log("field: none (zero)")
+    else:
+        log(f"field: {np.array2string(s.field, precision=5)} V/Å (from {source})")
     return s, {"field_V_per_A": s.field.tolist(), "field_source": source}

@@ -48,7 +48,7 @@ def add_label(sub) -> None:
         print(summary.text())
         return 0
 
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, resumable=True)
 
 
 def add_relabel(sub) -> None:
@@ -125,6 +125,7 @@ def add_campaign(sub) -> None:
                     help="finished labels become a new shard this often (default 20)")
     pr.add_argument("--commit", action="store_true", help="git-commit each new shard")
     pr.add_argument("--quiet", action="store_true", help="no progress bar")
+    pr.set_defaults(resumable=True)
     pc = csub.add_parser("card", help="regenerate README.md from the shards")
     pc.add_argument("folder")
 

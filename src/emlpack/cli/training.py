@@ -32,7 +32,7 @@ def add_train(sub) -> None:
         print("best model(s): " + " ".join(str(p) for p in paths))
         return 0
 
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, resumable=True)
 
 
 def add_evaluate(sub) -> None:
@@ -74,7 +74,7 @@ def add_demo(sub) -> None:
 
         return run_demo(args.output)
 
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, resumable=True)
 
 
 COMMANDS = [add_train, add_evaluate, add_demo]
