@@ -6,6 +6,7 @@ import json
 import os
 import platform
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +31,45 @@ def paper_model(dtype: torch.dtype):
     return model
 
 
+TRAINED = ROOT / "benchmarks" / "fixtures" / "eqm7_small_trained.pt"
+
+
+def trained_model(dtype: torch.dtype = torch.float64):
+    """The small model trained once on the shared eqm7 subset (see fixtures/README.md)."""
+    from emlpack.nn.checkpoint import load_model
+
+    model = load_model(TRAINED, dtype=dtype)
+    model.eval()
+    for p in model.parameters():
+        p.requires_grad_(False)
+    return model
+
+
+def benchmark_model(name: str, dtype: torch.dtype = torch.float64):
+    """``fixture`` (paper size, random weights), ``trained`` or a checkpoint path."""
+    if name == "fixture":
+        return paper_model(dtype)
+    if name == "trained":
+        return trained_model(dtype)
+    from emlpack.nn.checkpoint import load_model
+
+    model = load_model(name, dtype=dtype)
+    model.eval()
+    for p in model.parameters():
+        p.requires_grad_(False)
+    return model
+
+
+class CpuClock:
+    """CPU time of this process (user + system, all threads) since construction."""
+
+    def __init__(self) -> None:
+        self.start = time.process_time()
+
+    def elapsed(self) -> float:
+        return time.process_time() - self.start
+
+
 def load_structures():
     from emlpack.io import read_structures
 
@@ -47,6 +87,8 @@ def machine_info() -> dict:
         "platform": platform.platform(),
         "processor": _cpu_model(),
     }
+    info["omp_num_threads"] = os.environ.get("OMP_NUM_THREADS")
+    info["omp_wait_policy"] = os.environ.get("OMP_WAIT_POLICY")
     try:
         info["load_average"] = list(os.getloadavg())
     except OSError:

@@ -262,8 +262,14 @@ def test_relaxation_ethanol_same_minimum(small_model, bo):
     _, grad = prob.energy_gradient(x)
     h = prob.hessians(x, 6e6)[0]
     newton = (x - torch.linalg.solve(h, grad.reshape(-1)).reshape(-1, 3)).numpy()
-    np.testing.assert_allclose(r.pairs, newton, atol=2e-4, rtol=0)
-    np.testing.assert_allclose(r.pairs, bo[p + "relaxed_pair_positions"], atol=1e-2, rtol=0)
+    # the two nearly merged pairs are identical particles: which label ends on which position
+    # depends on the path, so compare the pairs matched to their nearest counterparts
+    order = np.argmin(np.linalg.norm(newton[:, None] - r.pairs[None], axis=-1), axis=1)
+    assert sorted(order.tolist()) == list(range(len(order)))
+    np.testing.assert_allclose(r.pairs[order], newton, atol=2e-4, rtol=0)
+    np.testing.assert_allclose(
+        r.pairs[order], bo[p + "relaxed_pair_positions"], atol=1e-2, rtol=0
+    )
     # with these random weights two pairs nearly merge (0.017 Å in the reference result):
     # our diagnostics must say so
     assert "merged" in r.reason and not r.converged
