@@ -265,6 +265,12 @@ def test_evaluate_static_errors(tmp_path):
                          "--no-dynamic", "-o", str(tmp_path / "ev"), "--quiet"])
     assert rc == 0, err
     assert (tmp_path / "ev" / "evaluation.json").exists()
+    text_model = tmp_path / "notes.pt"
+    text_model.write_text("not a model\n")
+    rc, _, err = run(["evaluate", str(model_file), str(text_model), str(data)])
+    assert rc == 2 and err.strip() == (f"emlp evaluate: error: {text_model}: not an emlpack"
+                                       " model file (a text file, not a PyTorch checkpoint"
+                                       " archive)")
 
 
 def test_campaign_init_and_card(tmp_path):

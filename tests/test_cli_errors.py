@@ -296,3 +296,24 @@ def test_sigint_in_a_command_that_does_not_resume(model_file, tmp_path, capsys, 
 def test_run():  # the helper itself: a command's stdout and exit code
     rc, out, err = run(["--version"])
     assert rc == 0 and out.startswith("emlpack ")
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["label", "x.csv", "-o", "d.h5", "--samples-per-molecule", "0"],
+     "--samples-per-molecule must be positive, got 0"),
+    (["label", "x.csv", "-o", "d.h5", "--workers", "-1"], "--workers must be non-negative, got -1"),
+    (["relabel", "x.xyz", "-o", "y.xyz", "--boys-starts", "0"],
+     "--boys-starts must be positive, got 0"),
+    (["evaluate", "m.pt", "d.h5", "--max-structures", "0"],
+     "--max-structures must be positive, got 0"),
+])
+def test_data_and_training_counts_are_checked_first(tmp_path, capsys, monkeypatch, argv,
+                                                    message):
+    monkeypatch.chdir(tmp_path)
+    if argv[0] == "evaluate":  # the model file is checked first
+        from tests.cli_helpers import save_test_model
+
+        save_test_model(tmp_path)
+        argv = ["evaluate", "model.pt", *argv[2:]]
+    line = _error(capsys, argv)
+    assert line == f"emlp {argv[0]}: error: {message}"

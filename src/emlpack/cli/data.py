@@ -4,7 +4,7 @@ itself (one line, exit 2)."""
 
 from __future__ import annotations
 
-from emlpack.cli.common import add_parser
+from emlpack.cli.common import add_parser, positive
 from emlpack.errors import InputError
 
 
@@ -34,6 +34,8 @@ def add_label(sub) -> None:
         from emlpack.qm.recipe import load_recipe
         from emlpack.qm.sampling import SamplingError
 
+        positive(args.samples_per_molecule, "--samples-per-molecule")
+        positive(args.workers, "--workers", allow_zero=True)
         try:
             overrides = list(args.overrides)
             if args.level:
@@ -70,6 +72,8 @@ def add_relabel(sub) -> None:
         from emlpack.qm.refxyz import RefXYZError
         from emlpack.qm.relabel import relabel
 
+        positive(args.boys_starts, "--boys-starts")
+        positive(args.workers, "--workers", allow_zero=True)
         try:
             report = relabel(args.input, args.output, level=args.level, index=args.index,
                              boys_starts=args.boys_starts, progress=not args.quiet,

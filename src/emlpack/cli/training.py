@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from emlpack.cli.common import add_parser
+from emlpack.cli.common import add_parser, check_model_file, positive
 from emlpack.errors import InputError
 
 
@@ -52,6 +52,9 @@ def add_evaluate(sub) -> None:
 
         if len(args.paths) < 2:
             raise InputError("give MODEL [MODEL ...] DATA")
+        for path in args.paths[:-1]:
+            check_model_file(path)
+        positive(args.max_structures, "--max-structures")
         try:
             table, _ = evaluate_models(args.paths[:-1], args.paths[-1], args.output,
                                        args.subset, not args.no_dynamic, args.max_structures,
