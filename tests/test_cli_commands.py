@@ -207,6 +207,8 @@ def md_run(tmp_path_factory):
                          "--nve", "--temperature", "100", "-o", str(out), "--quiet",
                          "--checkpoint-every", "2"])
     assert rc == 0, err
+    assert "INFO" not in err  # --quiet: the log goes to md.log only
+    assert "INFO MD NVE: 10 steps" in (out / "md.log").read_text()
     return out, text
 
 
@@ -219,6 +221,22 @@ def test_md_writes_trajectory_settings_and_warnings(md_run):
     assert settings["steps"] == 10 and settings["field_source"] == "none"
     assert "warnings" in json.loads((out / "warnings.json").read_text())
     assert "10 steps" in text
+
+
+def test_md_refuses_a_crystal_and_another_run_in_its_folder(md_run, model_file, tmp_path):
+    out, _ = md_run
+    start = out.parent / "water.xyz"
+    rc, _, err = run(["md", str(model_file), str(start), "--steps", "10", "--dt", "0.5",
+                      "--nve", "--temperature", "100", "-o", str(out), "--quiet"])
+    assert rc == 2
+    assert err.strip().splitlines()[-1].startswith(
+        f"emlp md: error: {out / 'checkpoint.npz'}: the checkpoint belongs to a different run"
+        " (differs in ['dt_fs'])")
+    assert json.loads((out / "settings.json").read_text())["dt"] == 0.25  # kept
+    crystal = _water_crystal(tmp_path / "ice.xyz")
+    rc, _, err = run(["md", str(model_file), str(crystal), "-o", str(tmp_path / "md")])
+    assert rc == 2 and err.strip() == (f"emlp md: error: {crystal}, frame 0: emlp md needs a"
+                                       " molecule; this is a crystal (pbc true)")
 
 
 def test_md_analysis_and_md_ir(md_run, tmp_path):

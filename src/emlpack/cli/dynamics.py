@@ -73,11 +73,14 @@ def add_md(sub) -> None:
         set_threads(args.threads)
         log = Log(args.quiet)
         model = load_model(args.model)
-        s, where = read_structure(args, model, log, command="emlp md")
+        s, where = read_structure(args, model, log, periodic=False, command="emlp md")
         s, field_info = apply_field(s, args, where, log)
         out = Path(args.output)
         out.mkdir(parents=True, exist_ok=True)
-        write_json(out / "settings.json", {**settings(args), **field_info, "structure": where})
+        resolved = {**settings(args), **field_info, "structure": where}
+        if args.no_resume or not (out / "settings.json").exists():
+            write_json(out / "settings.json", resolved)
+        logger = _md_logger(out, args.quiet)
         try:
             result = run_md(
                 model, s, args.steps, out, dt_fs=args.dt, temperature_K=args.temperature,
@@ -86,11 +89,18 @@ def add_md(sub) -> None:
                 seed=args.seed, tdamp_fs=args.tdamp, relax=args.relax, fmax=args.fmax,
                 record_every=args.record_every, checkpoint_every=args.checkpoint_every,
                 resume=not args.no_resume,
-                watchdog=Watchdog(curvature_every=args.curvature_every),
+                watchdog=Watchdog(curvature_every=args.curvature_every), logger=logger,
             )
         except MDWatchdogError as exc:  # a failed computation, not a user error: exit 3
             print(f"emlp md: watchdog: {exc}", file=sys.stderr)
             return 3
+        except ValueError as exc:  # e.g. the output folder holds another run's checkpoint
+            raise InputError(str(exc)) from exc
+        finally:
+            for handler in list(logger.handlers):
+                logger.removeHandler(handler)
+                handler.close()
+        write_json(out / "settings.json", resolved)
         warnings = []
         if not s.pbc:
             from emlpack.io import read_structures
@@ -109,6 +119,27 @@ def add_md(sub) -> None:
         return 0
 
     p.set_defaults(func=run, resumable=True)
+
+
+def _md_logger(folder, quiet: bool):
+    """The run's log: every line to ``md.log``; to stderr too, warnings only with --quiet."""
+    import logging
+
+    from emlpack.md import LOG
+
+    path = (folder / LOG).resolve()
+    log = logging.getLogger(f"emlpack.cli.md.{path}")
+    log.setLevel(logging.INFO)
+    log.propagate = False
+    for handler in list(log.handlers):
+        log.removeHandler(handler)
+        handler.close()
+    fmt = logging.Formatter("%(asctime)s %(levelname)s %(message)s")
+    for handler in (logging.FileHandler(path), logging.StreamHandler()):
+        handler.setFormatter(fmt)
+        log.addHandler(handler)
+    log.handlers[1].setLevel(logging.WARNING if quiet else logging.INFO)
+    return log
 
 
 def add_md_analysis(sub) -> None:
