@@ -48,6 +48,8 @@ def test_help(command):
                      "-o OUTPUT, --output OUTPUT"):
             assert flag in out, (command, flag)
         assert "(default: " in out
+    if command == "md":  # a default of 0 is shown too
+        assert "seed of the initial velocities (default: 0)" in " ".join(out.split())
 
 
 def test_version():
