@@ -369,3 +369,41 @@ def test_interrupted_label_says_it_resumes(tmp_path, monkeypatch):
     assert rc == 130
     assert err.strip().splitlines()[-1] == (
         "emlp label: interrupted; re-run the same command to resume")
+
+
+def test_train_then_evaluate(model, tmp_path):
+    """``emlp train`` on 8 water configurations labelled by the random model (constant
+    reference, 2 epochs), then ``emlp evaluate`` of its best model."""
+    import yaml
+
+    from emlpack.io import write_structures
+
+    s0 = read_structures(write_xyz(tmp_path / "w.xyz", water_rows(4)))[0]
+    rng = np.random.default_rng(0)
+    frames = []
+    for k in range(8):
+        s = s0.copy(positions=s0.positions + rng.normal(scale=0.03, size=(3, 3)),
+                    info={"molecule_id": "water"}, source=f"water {k}")
+        r = model.evaluate(s)
+        frames.append(s.copy(energy=r["energy"], forces=r["forces"],
+                             pair_forces=np.zeros_like(s.pairs)))
+    data = tmp_path / "data.xyz"
+    write_structures(data, frames)
+    cfg = {"data": {"path": str(data), "reference": "constant", "split": "configuration",
+                    "fractions": [0.75, 0.25, 0.0]},
+           "model": {"n_features": 8, "n_filters": 8, "n_rbf": 8, "n_interactions": 1},
+           "training": {"batch_size": 4, "max_epochs": 2, "threads": 1},
+           "output": {"dir": str(tmp_path / "run"), "progress": False}}
+    path = tmp_path / "cfg.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    rc, text, err = run(["train", str(path)])
+    assert rc == 0, err + text
+    best = tmp_path / "run" / "best.pt"
+    assert f"best model(s): {best}" in text
+    rc, text, err = run(["evaluate", str(best), str(data), "--subset", "all", "--no-dynamic",
+                         "-o", str(tmp_path / "ev"), "--quiet"])
+    assert rc == 0, err
+    table = json.loads((tmp_path / "ev" / "evaluation.json").read_text())
+    assert table  # the tables were written
+    rc, _, err = run(["train", str(path), "training.nonsense=1"])
+    assert rc == 2 and err.strip().startswith("emlp train: error:")

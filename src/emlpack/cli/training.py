@@ -17,7 +17,7 @@ def add_train(sub) -> None:
 
     def run(args):
         from emlpack.data.dataset import DataError
-        from emlpack.data.references import ReferenceError
+        from emlpack.data.references import HydrideReferenceError
         from emlpack.train.config import ConfigError, load_config
         from emlpack.train.trainer import train, train_ensemble
 
@@ -27,7 +27,7 @@ def add_train(sub) -> None:
                 paths = train_ensemble(cfg, args.seeds, resume=not args.restart)
             else:
                 paths = [train(cfg, resume=not args.restart)]
-        except (ConfigError, DataError, ReferenceError) as exc:
+        except (ConfigError, DataError, HydrideReferenceError) as exc:
             raise InputError(str(exc)) from exc
         print("best model(s): " + " ".join(str(p) for p in paths))
         return 0
