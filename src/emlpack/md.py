@@ -978,25 +978,3 @@ def _file_logger(path: Path) -> logging.Logger:
         log.addHandler(sh)
     return log
 
-
-def run_md_file(args) -> MDResult:
-    """``emlp md``: read the start frame, pick the field, run :func:`run_md` (see the CLI)."""
-    from emlpack.response_tasks import read_input
-    from emlpack.units import FIELD_AU_IN_V_PER_A
-
-    torch.set_num_threads(max(1, int(args.threads)))
-    # a start without pairs gets guess_pairs (relaxed at step 0)
-    structure = read_input(args.start, str(args.frame))
-    field_v = None
-    if args.field is not None:
-        field_v = np.asarray(args.field, float)
-    elif args.field_au is not None:
-        field_v = np.asarray(args.field_au, float) * FIELD_AU_IN_V_PER_A
-    watchdog = Watchdog(curvature_every=args.curvature_every)
-    return run_md(
-        args.model, structure, args.steps, args.output, dt_fs=args.dt,
-        temperature_K=args.temperature, ensemble="nve" if args.nve else "nvt", field=field_v,
-        seed=args.seed, tdamp_fs=args.tdamp, relax=args.relax, fmax=args.fmax,
-        record_every=args.record_every, checkpoint_every=args.checkpoint_every,
-        resume=not args.no_resume, watchdog=watchdog,
-    )
