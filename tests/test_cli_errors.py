@@ -212,6 +212,11 @@ def test_torch_file_that_is_not_an_emlpack_model(tmp_path, capsys):
     path = write_xyz(tmp_path / "w.xyz", water_rows(n_pairs=4))
     line = _error(capsys, ["ir", str(model), str(path)])
     assert line.startswith(f"emlp ir: error: {model}: not an emlpack model checkpoint")
+    # a pickled module: refused without PyTorch's advice to load it unsafely
+    torch.save(torch.nn.Linear(2, 2), model)
+    line = _error(capsys, ["ir", str(model), str(path)])
+    assert line == (f"emlp ir: error: {model}: not an emlpack model (a PyTorch file holding"
+                    " pickled objects; emlpack reads weights only)")
 
 
 # ------------------------------------------------------------------ arguments

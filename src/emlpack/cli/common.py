@@ -186,9 +186,17 @@ def _looks_like_text(path: Path) -> bool:
 
 def load_model(name_or_path: str):
     """The one place that turns a MODEL argument into a float64 model (after the file check)."""
+    from emlpack.nn.checkpoint import CheckpointError
     from emlpack.nn.checkpoint import load_model as _load
 
-    return _load(check_model_file(name_or_path))
+    path = check_model_file(name_or_path)
+    try:
+        return _load(path)
+    except CheckpointError as exc:
+        if "weights_only" in str(exc) or "Unpickl" in str(exc):  # never advise unsafe loading
+            raise ModelFileError(f"{path}: not an emlpack model (a PyTorch file holding pickled"
+                                 " objects; emlpack reads weights only)") from exc
+        raise
 
 
 def model_elements(model) -> tuple[int, ...]:
