@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from emlpack.cli.common import add_parser, check_model_file, positive
+from emlpack.cli.common import add_parser, load_model, positive
 from emlpack.errors import InputError
 
 
@@ -53,7 +53,7 @@ def add_evaluate(sub) -> None:
         if len(args.paths) < 2:
             raise InputError("give MODEL [MODEL ...] DATA")
         for path in args.paths[:-1]:
-            check_model_file(path)
+            load_model(path)  # the file checks, before the data are read
         positive(args.max_structures, "--max-structures")
         try:
             table, _ = evaluate_models(args.paths[:-1], args.paths[-1], args.output,
