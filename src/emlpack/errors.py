@@ -9,6 +9,8 @@ the command line prints it without a traceback. Each area keeps its own subclass
 
 from __future__ import annotations
 
+__all__ = ["EmlpackError", "InputError", "ModelFileError"]
+
 
 class EmlpackError(Exception):
     """Base class of every emlpack error (user errors and failed computations)."""
