@@ -158,6 +158,10 @@ def test_missing_structure_file_and_frame(model_file, tmp_path, capsys):
     path = write_xyz(tmp_path / "w.xyz", water_rows(n_pairs=4))
     line = _error(capsys, ["ir", str(model_file), str(path), "--index", "3"])
     assert line == f"emlp ir: error: {path}: frame 3 requested but the file has 1 frames"
+    line = _error(capsys, ["ir", str(model_file), str(tmp_path)])
+    assert line == f"emlp ir: error: {tmp_path}: is a folder, not a structure file"
+    line = _error(capsys, ["ir", str(model_file), str(path), "--index", "last"])
+    assert line == f"emlp ir: error: {path}: frame index must be an integer, got 'last'"
 
 
 def test_neither_or_both_structure_and_smiles(model_file, tmp_path, capsys):

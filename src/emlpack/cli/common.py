@@ -226,7 +226,7 @@ def read_input_atoms(args) -> tuple:
     from emlpack.io.extxyz import read_frame_atoms
 
     p = Path(path)
-    if p.suffix.lower() in (".xyz", ".extxyz") or not p.exists():
+    if p.suffix.lower() in (".xyz", ".extxyz") or not p.is_file():
         atoms = read_frame_atoms(p, args.index)
         index = int(args.index)
         return atoms, f"{p}, frame {index}"

@@ -249,6 +249,8 @@ def read_frame_atoms(path: str | os.PathLike, index: int | str = 0) -> Atoms:
     """The raw ASE frame ``index`` (an int; negative counts from the end) of an xyz/extxyz file,
     ``Es`` rows included; errors name the file and the frame (:class:`ExtxyzError`)."""
     path = Path(path)
+    if path.is_dir():
+        raise ExtxyzError(f"{path}: is a folder, not a structure file")
     if not path.is_file():
         raise ExtxyzError(f"{path}: no such file")
     try:
