@@ -256,6 +256,9 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
     settings = load_settings(folder)
     molecules = read_molecule_table(folder)
     recipe = settings["recipe"]
+    for tmp in [*(folder / SHARD_DIR).glob(".*.tmp*"), *(folder / "prepared").glob(".*.tmp*")]:
+        if time.time() - tmp.stat().st_mtime > 3600:
+            tmp.unlink()  # left by a run killed while writing (never a finished file)
     done = finished_keys(folder)
     work = folder / "work" / f"labels-{socket.gethostname()}.h5"
     t0 = time.time()
@@ -275,8 +278,8 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
         state["shards"].append(shard)
         write_card(folder)
         log.info("campaign %s: wrote %s", folder, shard)
-        if commit:
-            git_commit(folder, [shard, folder / "prepared", folder / "README.md"],
+        if commit:  # the folders: a shard renamed but not committed by a killed run, too
+            git_commit(folder, [folder / SHARD_DIR, folder / "prepared", folder / "README.md"],
                        f"{settings.get('name', folder.name)}: shard {shard.stem}")
 
     def on_stored(store: DatasetStore) -> bool:
