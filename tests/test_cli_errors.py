@@ -326,3 +326,48 @@ def test_data_and_training_counts_are_checked_first(tmp_path, capsys, monkeypatc
         argv = ["evaluate", "model.pt", *argv[2:]]
     line = _error(capsys, argv)
     assert line == f"emlp {argv[0]}: error: {message}"
+
+
+def test_real_sigint_during_md_exits_130_and_the_rerun_resumes(tmp_path):
+    """``emlp md`` in a subprocess, Ctrl-C (SIGINT) after a few steps: exit 130, one line
+    with the resume hint, no traceback; the same command then continues the run."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from emlpack.io import read_structures
+
+    model = save_test_model(tmp_path, seed=4)
+    start = write_xyz(tmp_path / "w.xyz", water_rows(n_pairs=4))
+    out = tmp_path / "md"
+    cmd = [sys.executable, "-m", "emlpack.cli", "md", str(model), str(start), "-o", str(out),
+           "--steps", "2000", "--dt", "0.25", "--nve", "--temperature", "100",
+           "--checkpoint-every", "1", "--quiet"]
+    env = dict(os.environ, OMP_NUM_THREADS="1",
+               PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    traj = out / "trajectory.xyz"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if traj.exists() and traj.read_text().count("\n7\n") >= 3:
+            break
+        time.sleep(0.1)
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    assert err.strip().splitlines()[-1] == (
+        "emlp md: interrupted; re-run the same command to resume")
+    done = len(read_structures(traj))
+    assert 3 <= done < 2001
+    # the re-run continues from the checkpoint (here to a smaller total, so it ends quickly)
+    rerun = cmd.copy()
+    rerun[rerun.index("2000")] = str(done)
+    rc = subprocess.run(rerun, env=env, capture_output=True, text=True, timeout=120)
+    assert rc.returncode == 0, rc.stderr
+    assert len(read_structures(traj)) == done + 1
+    assert "resuming from step" in (out / "md.log").read_text()
