@@ -371,3 +371,33 @@ def test_real_sigint_during_md_exits_130_and_the_rerun_resumes(tmp_path):
     assert rc.returncode == 0, rc.stderr
     assert len(read_structures(traj)) == done + 1
     assert "resuming from step" in (out / "md.log").read_text()
+
+
+def test_molecule_commands_refuse_a_crystal(model_file, tmp_path, capsys):
+    path = write_xyz(tmp_path / "ice.xyz", water_rows(n_pairs=4),
+                     comment='Lattice="5 0 0 0 5 0 0 0 5" pbc="T T T"')
+    for command in ("ir", "polarizability"):
+        line = _error(capsys, [command, str(model_file), str(path)])
+        assert line == (f"emlp {command}: error: {path}, frame 0: emlp {command} needs a"
+                        " molecule; this is a crystal (pbc true)")
+
+
+def test_close_atoms_across_the_periodic_boundary(model_file, tmp_path, capsys):
+    rows = [("O", 0.1, 0.0, 0.0), ("H", 4.8, 0.0, 0.0), ("H", 0.1, 1.0, 0.0)]
+    path = write_xyz(tmp_path / "x.xyz", rows, comment='Lattice="5 0 0 0 5 0 0 0 5" pbc="T T T"')
+    line = _error(capsys, ["response", str(model_file), str(path)])
+    assert line == (f"emlp response: error: {path}, frame 0: atoms 0 (O) and 1 (H) are 0.30 Å"
+                    " apart (closer than 0.5 Å)")
+
+
+def test_mixed_periodicity_and_a_singular_cell(model_file, tmp_path, capsys):
+    mixed = write_xyz(tmp_path / "m.xyz", water_rows(4),
+                      comment='Lattice="5 0 0 0 5 0 0 0 5" pbc="T T F"')
+    assert _error(capsys, ["response", str(model_file), str(mixed)]) == (
+        f"emlp response: error: {mixed}, frame 0: mixed periodicity pbc=[True, True, False] is"
+        " not supported (all or none)")
+    flat = write_xyz(tmp_path / "f.xyz", water_rows(4),
+                     comment='Lattice="5 0 0 0 5 0 0 0 0" pbc="T T T"')
+    assert _error(capsys, ["response", str(model_file), str(flat)]) == (
+        f"emlp response: error: {flat}, frame 0: periodic structure with a singular or missing"
+        " cell")
