@@ -93,7 +93,7 @@ def test_odd_electron_count_names_the_charge(model_file, tmp_path, capsys):
     path = write_xyz(tmp_path / "w.xyz", water_rows(n_pairs=0))
     line = _error(capsys, ["ir", str(model_file), str(path), "--charge", "1"])
     assert line == (f"emlp ir: error: {path}, frame 0: odd number of valence electrons for"
-                    " charge +1 of H2O (eMLP needs closed-shell electron pairs; is --charge"
+                    " charge +1 of H2O (eMLP needs closed-shell electron pairs; is the charge"
                     " right?)")
 
 

@@ -294,7 +294,7 @@ def read_structure(args, model, log: Log, periodic: bool | None = None, command:
 
     Returns ``(structure, where)``. The field is applied separately (:func:`apply_field`).
     """
-    from emlpack.io.extxyz import frame_to_structure
+    from emlpack.io.extxyz import check_pair_count, frame_to_structure
     from emlpack.structure import PAIR_NUMBER
 
     atoms, where = read_input_atoms(args)
@@ -307,7 +307,7 @@ def read_structure(args, model, log: Log, periodic: bool | None = None, command:
     is_pair = atoms.numbers == PAIR_NUMBER
     if is_pair.any():
         return frame_to_structure(atoms, where), where
-    _valence_pairs(atoms, charge, where)
+    check_pair_count(atoms.numbers, None, charge, where)
     from emlpack.guess import guess_pairs
     from emlpack.io import atoms_to_structure
 
@@ -326,20 +326,6 @@ def read_structure(args, model, log: Log, periodic: bool | None = None, command:
     field = _file_field(atoms, where)
     return atoms_to_structure(cores, pairs=pairs, field=field, charge=charge,
                               source=f"{where} (guessed pairs)"), where
-
-
-def _valence_pairs(atoms, charge: float, where: str) -> int:
-    """The number of valence pairs of the cores (raises on an odd electron count)."""
-    from emlpack.io.extxyz import ExtxyzError
-    from emlpack.structure import core_charges
-
-    valence = (float(core_charges(atoms.numbers).sum()) - charge) / 2.0
-    if valence != round(valence):
-        what = "a neutral" if charge == 0 else f"charge {charge:+g} of"
-        raise ExtxyzError(f"{where}: odd number of valence electrons for {what}"
-                          f" {atoms.get_chemical_formula(mode='hill')} (eMLP needs"
-                          " closed-shell electron pairs; is --charge right?)")
-    return int(round(valence))
 
 
 def _file_field(atoms, where: str):

@@ -391,9 +391,10 @@ def _atoms_to_structure(
         raise ExtxyzError(message) from None
 
 
-def check_pair_count(numbers, n_given: int, charge: float, source: str) -> None:
+def check_pair_count(numbers, n_given: int | None, charge: float, source: str) -> None:
     """Raise :class:`ExtxyzError` unless ``n_given`` electron pairs (``Es`` rows) fit the cores
-    ``numbers`` at total ``charge``: the valence pairs, or those plus the 1s core centres.
+    ``numbers`` at total ``charge``: the valence pairs, or those plus the 1s core centres
+    (``n_given=None``: only that the electron count is even, before pairs are guessed).
 
     The message says what is given and what is needed, e.g. "3 electron pairs given, 4 needed
     for a neutral H2O".
@@ -409,6 +410,8 @@ def check_pair_count(numbers, n_given: int, charge: float, source: str) -> None:
             f"{source}: odd number of valence electrons for {what} {formula}"
             " (eMLP needs closed-shell electron pairs; is the charge right?)"
         )
+    if n_given is None:
+        return
     need = int(round(valence))
     inner = int(n_core_pairs(numbers).sum())
     if n_given == need or (inner and n_given == need + inner):
