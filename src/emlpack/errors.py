@@ -9,7 +9,7 @@ the command line prints it without a traceback. Each area keeps its own subclass
 
 from __future__ import annotations
 
-__all__ = ["EmlpackError", "InputError", "ModelFileError"]
+__all__ = ["EmlpackError", "InputError", "MissingFileError", "ModelFileError"]
 
 
 class EmlpackError(Exception):
@@ -22,3 +22,7 @@ class InputError(EmlpackError, ValueError):
 
 class ModelFileError(EmlpackError, ValueError):
     """A model argument that is not an emlpack model file (checked before PyTorch reads it)."""
+
+
+class MissingFileError(EmlpackError, FileNotFoundError):
+    """An input file that does not exist (the message names it)."""

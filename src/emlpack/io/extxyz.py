@@ -33,6 +33,7 @@ from ase import Atoms
 from ase.stress import voigt_6_to_full_3x3_stress
 from ase.utils import string2index
 
+from emlpack.errors import InputError, MissingFileError
 from emlpack.io.cores import CORE_TOLERANCE, split_core_centres
 from emlpack.structure import (
     MAX_SUPPORTED_Z,
@@ -120,10 +121,10 @@ def iread_structures(
     at the call.
     """
     if convention not in CONVENTIONS:
-        raise ValueError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
+        raise InputError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such file")
+        raise MissingFileError(f"{path}: no such file")
     wanted = _selection(path, index)
     return _iterate(path, wanted, convention, core_tolerance)
 
