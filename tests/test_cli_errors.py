@@ -16,6 +16,7 @@ from emlpack.cli import main
 from emlpack.errors import (
     EmlpackError,
     InputError,
+    MissingFileError,
     ModelFileError,
 )
 from tests.cli_helpers import run, save_test_model, water_rows, write_xyz
@@ -57,11 +58,12 @@ def test_every_user_error_class_is_an_emlpack_error():
     classes = [CrystalReferenceError, DataError, HydrideReferenceError, StoreError, ExtxyzError,
                TFCheckpointError, MDWatchdogError, TrajectoryAnalysisError, CheckpointError,
                LabelingError, RefXYZError, SamplingError, StructureError, ConfigError,
-               InputError, ModelFileError]
+               InputError, ModelFileError, MissingFileError]
     for cls in classes:
         assert issubclass(cls, EmlpackError), cls
     # the built-in bases stay, so existing except clauses keep working
     assert issubclass(StructureError, ValueError) and issubclass(StoreError, RuntimeError)
+    assert issubclass(MissingFileError, FileNotFoundError)
     assert not issubclass(HydrideReferenceError, ReferenceError)  # the built-in is not shadowed
 
 
