@@ -248,10 +248,11 @@ def test_md_analysis_and_md_ir(md_run, tmp_path):
     assert run(["md-analysis", str(traj), "--discard", "0", "-o", str(js)])[0] == 0
     runs = json.loads(js.read_text())["runs"]
     assert len(runs) == 1 and runs[0]["n_frames"] == 11
+    assert json.loads(js.read_text())["settings"]["discard"] == 0
     ir = tmp_path / "md_ir.json"
     rc, _, err = run(["md-ir", str(traj), "-o", str(ir), "--temperature", "300"])
     assert rc == 0, err
-    assert ir.stat().st_size > 0
+    assert json.loads(ir.read_text())["settings"]["temperature"] == 300
     # too few frames: one line, exit 2
     short = tmp_path / "short.xyz"
     short.write_text("".join(traj.read_text().splitlines(keepends=True)[: 3 * 9]))

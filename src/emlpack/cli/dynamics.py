@@ -121,6 +121,17 @@ def add_md(sub) -> None:
     p.set_defaults(func=run, resumable=True)
 
 
+def _add_settings(json_path, args) -> None:
+    """Add the resolved settings to the JSON output an analysis function wrote."""
+    import json
+    from pathlib import Path
+
+    if json_path and Path(json_path).is_file():
+        data = json.loads(Path(json_path).read_text())
+        data["settings"] = settings(args)
+        write_json(json_path, data)
+
+
 def _md_logger(folder, quiet: bool):
     """The run's log: every line to ``md.log``; to stderr too, warnings only with --quiet."""
     import logging
@@ -163,6 +174,7 @@ def add_md_analysis(sub) -> None:
                          args.series)
         except ValueError as exc:  # the message names the file and frame
             raise InputError(str(exc)) from exc
+        _add_settings(args.output, args)
         return 0
 
     p.set_defaults(func=run)
@@ -197,6 +209,7 @@ def add_md_ir(sub) -> None:
                       correction=args.correction, padding=args.padding)
         except ValueError as exc:  # too few frames, no dipoles: the message names the file
             raise InputError(str(exc)) from exc
+        _add_settings(args.output, args)
         return 0
 
     p.set_defaults(func=run)
