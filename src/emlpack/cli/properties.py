@@ -66,9 +66,16 @@ class Prepared:
         out["settings"] = settings(args)
         return out
 
-    def summary(self, what: str = "done") -> str:
+    def summary(self) -> str:
+        """The last line: "converged", "not converged" or "done" (nothing relaxed), with
+        "with warnings (N)" after the warnings were printed."""
         for w in self.warnings:
             self.log(f"warning: {w}")
+        what = "done"
+        if "optimisation" in self.relax_info:
+            what = "converged" if self.relax_info["optimisation"]["converged"] else "not converged"
+        elif "pairs" in self.relax_info:
+            what = "not converged" if self.relax_info["pairs"]["failed"] else "converged"
         if self.warnings:
             return f"{what} with warnings ({len(self.warnings)})"
         return what
@@ -179,8 +186,7 @@ def add_optimize(sub) -> None:
         json_path = out.with_suffix(".json")
         write_json(json_path, data)
         prep.log(f"wrote {out} and {json_path}")
-        converged = prep.relax_info.get("optimisation", {}).get("converged", True)
-        prep.log(prep.summary("converged" if converged else "not converged"))
+        prep.log(prep.summary())
         return 0
 
     p.set_defaults(func=run)
