@@ -272,9 +272,9 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
         now = time.time()
         info = dict(run, started=state["since"], ended=now, wall_s=now - state["since"])
         shard = export_shard(folder, store, info)
-        state["since"] = now
         if shard is None:
             return
+        state["since"] = now  # the next shard accounts the wall time from here
         state["shards"].append(shard)
         write_card(folder)
         log.info("campaign %s: wrote %s", folder, shard)
