@@ -164,6 +164,10 @@ def test_missing_structure_file_and_frame(model_file, tmp_path, capsys):
     assert line == f"emlp ir: error: {tmp_path}: is a folder, not a structure file"
     line = _error(capsys, ["ir", str(model_file), str(path), "--index", "last"])
     assert line == f"emlp ir: error: {path}: frame index must be an integer, got 'last'"
+    pdb = tmp_path / "empty.pdb"
+    pdb.write_text("REMARK nothing here\n")
+    line = _error(capsys, ["ir", str(model_file), str(pdb)])
+    assert line == f"emlp ir: error: {pdb}, frame 0: no atoms in the structure"
 
 
 def test_neither_or_both_structure_and_smiles(model_file, tmp_path, capsys):

@@ -227,16 +227,25 @@ def read_input_atoms(args) -> tuple:
 
     p = Path(path)
     if p.suffix.lower() in (".xyz", ".extxyz") or not p.is_file():
-        atoms = read_frame_atoms(p, args.index)
-        index = int(args.index)
-        return atoms, f"{p}, frame {index}"
+        return read_frame_atoms(p, args.index), f"{p}, frame {args.index}"
     import ase.io
 
     try:
-        atoms = ase.io.read(p, index=int(args.index))
+        index = int(args.index)
+    except ValueError:
+        raise InputError(f"{p}: frame index must be an integer, got {args.index!r}") from None
+    try:
+        atoms = ase.io.read(p, index=index)
     except Exception as exc:  # ASE raises many types for foreign files
-        raise InputError(f"{p}, frame {args.index}: cannot read the structure: {exc}") from None
-    return atoms, f"{p}, frame {args.index}"
+        raise InputError(f"{p}, frame {index}: cannot read the structure:"
+                         f" {one_line_text(exc)}") from None
+    return atoms, f"{p}, frame {index}"
+
+
+def one_line_text(exc: BaseException) -> str:
+    """The message of ``exc`` on one line (its class name when it has none)."""
+    text = " ".join(part.strip() for part in str(exc).splitlines() if part.strip())
+    return text or type(exc).__name__
 
 
 def check_atoms(atoms, where: str, elements, periodic: bool | None = None,
@@ -249,6 +258,8 @@ def check_atoms(atoms, where: str, elements, periodic: bool | None = None,
 
     numbers = atoms.numbers
     cores = numbers != PAIR_NUMBER
+    if not cores.any():
+        raise InputError(f"{where}: no atoms in the structure")
     unknown = sorted(set(numbers[cores].tolist()) - set(elements))
     if unknown:
         names = ", ".join(f"{chemical_symbols[z]} (Z={z})" for z in unknown)
@@ -320,8 +331,7 @@ def read_structure(args, model, log: Log, periodic: bool | None = None, command:
         pairs = guess_pairs(cores, method, charge=charge)
     except Exception as exc:  # PySCF and the Lewis guess raise many types
         raise InputError(f"{where}: the electron-pair guess ({method}) failed:"
-                         f" {str(exc).strip().splitlines()[0] if str(exc).strip() else exc!r}"
-                         ) from exc
+                         f" {one_line_text(exc)}") from exc
     log.progress(f"guessed {len(pairs)} electron pairs in {time.perf_counter() - t0:.1f} s")
     field = _file_field(atoms, where)
     return atoms_to_structure(cores, pairs=pairs, field=field, charge=charge,
