@@ -89,6 +89,10 @@ class RelaxOptions:
     #: Hessian probes per vectorised batch are limited so that probes x (edges x filters +
     #: particles x features) stays below this many elements (bounds memory to ~2 GB)
     probe_budget: float = 6e6
+    #: "coulomb": the smallest curvature at the result (``check_curvature``) by Davidson
+    #: iterations preconditioned by the quasi-Newton model, at most this many exact
+    #: Hessian-vector products (0: the full exact pair Hessian instead)
+    curvature_steps: int = 20
     min_pair_distance: float = 0.1
     max_core_distance: float = 2.0
     check_curvature: bool = True
@@ -116,6 +120,15 @@ class _PairProblem:
         e = self.model.energy(self.g, self.g.positions.index_put((self.pair_idx,), x))
         (grad,) = torch.autograd.grad(e.sum(), x)
         return e.detach(), grad.detach()
+
+    def hvp(self, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """Hessian-vector product (P_total, 3) of the summed energy, reverse over reverse
+        (measured: ~2.3 energy+gradient evaluations, 2.7x cheaper than forward over reverse)."""
+        x = x.detach().requires_grad_(True)
+        e = self.model.energy(self.g, self.g.positions.index_put((self.pair_idx,), x)).sum()
+        (grad,) = torch.autograd.grad(e, x, create_graph=True)
+        (hv,) = torch.autograd.grad((grad * v.to(grad.dtype)).sum(), x)
+        return hv.detach()
 
     def hessians(self, x: torch.Tensor, budget: float) -> torch.Tensor:
         """Padded pair-block Hessians (B, 3 Pmax, 3 Pmax); padding is the identity."""
@@ -452,7 +465,9 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
             n_eval[k] += r.n_evaluations
             n_hess[k] += r.n_hessians
 
-    min_curv = _min_curvature(prob, x, grad, lower, upper, projected, opts, n_hess)
+    model_hessian = hc + short + pad_eye
+    min_curv = _min_curvature(prob, x, grad, lower, upper, projected, opts, n_hess,
+                              model_hessian)
     return _results(structures, prob, x, energy, grad, converged, iters, n_eval, n_hess,
                     fmax, min_curv, opts)
 
@@ -478,11 +493,88 @@ def _lumped_short_range(prob, coulomb, x, grad, step=1e-4):
     return out.permute(0, 1, 3, 2, 4).reshape(b, 3 * n, 3 * n)
 
 
-def _min_curvature(prob, x, grad, lower, upper, projected, opts, n_hess) -> torch.Tensor:
+_DAVIDSON_TRACE: list | None = None  # set to a list to record (products, residual, value)
+
+
+def _davidson_min_curvature(prob, x, mask, model_hessian, steps, tol=1e-3, block=4):
+    """Smallest eigenvalue of every structure's exact pair Hessian restricted to ``mask``
+    (B, m): Davidson iterations preconditioned by the quasi-Newton model ``model_hessian``
+    (B, m, m; Olsen's correction, so a model close to the Hessian does not stall), started from
+    the model's ``block`` softest directions (one alone can miss a soft mode the model does not
+    know: measured on the fixture weights' hexane); one exact Hessian-vector product for the
+    whole batch per iteration, at most ``steps``, stopped when every residual r satisfies
+    ``r <= tol sqrt(|theta| scale)`` (scale: the model's largest curvature; the eigenvalue
+    error is ~ r^2 / gap: measured <= 5e-5 relative on hexane with both test models)."""
+    b, m = mask.shape
+    dtype = x.dtype
+    maskf = mask.to(dtype)
+    both = mask[:, :, None] & mask[:, None, :]
+    mod = torch.where(both, model_hessian, 0.0) + torch.diag_embed(torch.where(mask, 0.0, 1e30))
+    lam, vec = torch.linalg.eigh(mod)
+    scale = torch.clamp(lam.abs().masked_fill(~mask, 0.0).amax(1), min=1e-6)  # (B,)
+    basis, images = [], []
+    theta = torch.zeros(b, dtype=dtype)
+    for it in range(steps):
+        if it < block:  # start: the model's ``block`` softest directions
+            q = vec[:, :, it] * maskf
+            q = torch.where(mask.sum(1, keepdim=True) > it, q, 0.0)
+        hq = prob.pad(prob.hvp(x, prob.unpad(q))) * maskf
+        basis.append(q)
+        images.append(hq)
+        if it + 1 < block:
+            continue
+        qs, hqs = torch.stack(basis, 2), torch.stack(images, 2)
+        t = qs.transpose(1, 2) @ hqs
+        t = 0.5 * (t + t.transpose(1, 2))
+        empty = torch.linalg.norm(qs, dim=1) < 0.5  # (B, k) inert zero columns
+        t = t + torch.diag_embed(torch.where(empty, 1e30, 0.0))
+        evals, evecs = torch.linalg.eigh(t)
+        theta, y = evals[:, 0], evecs[:, :, 0]
+        u = (qs @ y[:, :, None]).squeeze(-1)
+        r = (hqs @ y[:, :, None]).squeeze(-1) - theta[:, None] * u
+        res = torch.linalg.norm(r, dim=1)
+        done = res <= tol * torch.sqrt(torch.clamp(theta.abs(), min=1e-6 * scale) * scale)
+        if _DAVIDSON_TRACE is not None:
+            _DAVIDSON_TRACE.append((it + 1, float(res.max()), float(theta[0])))
+        if bool(done.all()):
+            break
+        # Olsen: t = K^-1 r - eps K^-1 u with K = model - theta, eps making t orthogonal to u
+        denom = lam - theta[:, None]
+        denom = torch.where(denom.abs() < 1e-8 * scale[:, None],
+                            1e-8 * scale[:, None] * torch.sign(denom + 1e-300), denom)
+
+        def solve(v, denom=denom):
+            return (vec @ (((vec.transpose(1, 2) @ v[:, :, None]).squeeze(-1)) / denom)
+                    [:, :, None]).squeeze(-1)
+
+        kr, ku = solve(r), solve(u)
+        eps = (u * kr).sum(1) / torch.where((u * ku).sum(1).abs() > 1e-300, (u * ku).sum(1), 1.0)
+        w = (kr - eps[:, None] * ku) * maskf
+        for _ in range(2):
+            w = w - (qs @ (qs.transpose(1, 2) @ w[:, :, None])).squeeze(-1)
+        norm = torch.linalg.norm(w, dim=1, keepdim=True)
+        keep = (norm.squeeze(1) > 1e-12) & ~done
+        q = torch.where(keep[:, None], w / torch.clamp(norm, min=1e-300), 0.0)
+    return theta
+
+
+def _min_curvature(prob, x, grad, lower, upper, projected, opts, n_hess,
+                   model_hessian=None) -> torch.Tensor:
     """Smallest eigenvalue of the exact pair Hessian over the free coordinates (NaN when not
-    checked); counts one Hessian per structure in ``n_hess``."""
+    checked). With ``model_hessian`` (B, m, m) and ``opts.curvature_steps`` > 0: Davidson
+    preconditioned by the model (counted as one Hessian in ``n_hess``; costs at most
+    ``curvature_steps`` Hessian-vector products for the batch); else the exact pair Hessian."""
     g = prob.g
     min_curv = torch.full((g.n_structures,), float("nan"), dtype=torch.float64)
+    if opts.check_curvature and prob.n_max and model_hessian is not None and (
+        opts.curvature_steps > 0
+    ):
+        held = prob.pad(((x <= lower) | (x >= upper)) & (projected(grad, x) == 0)) > 0
+        mask = (torch.arange(3 * prob.n_max)[None, :] < 3 * g.n_pairs[:, None]) & ~held
+        steps = min(opts.curvature_steps, int(mask.sum(1).max()))
+        min_curv = _davidson_min_curvature(prob, x, mask, model_hessian, steps)
+        n_hess += 1
+        return torch.where(mask.any(1), min_curv, torch.nan)
     if opts.check_curvature and prob.n_max:
         exact = prob.hessians(x, opts.probe_budget)
         n_hess += 1
