@@ -42,10 +42,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def one_line(exc: BaseException) -> str:
     """The message of ``exc`` on one line (its class name when it has none)."""
-    text = " ".join(part.strip() for part in str(exc).splitlines() if part.strip())
-    if isinstance(exc, KeyError) and len(exc.args) == 1:
-        text = str(exc.args[0])
-    return text or type(exc).__name__
+    from emlpack.cli.common import one_line_text
+
+    return one_line_text(exc)
 
 
 def main(argv: list[str] | None = None) -> int:
