@@ -207,7 +207,7 @@ def md_run(tmp_path_factory):
     out = folder / "run"
     rc, text, err = run(["md", str(model_file), str(start), "--steps", "10", "--dt", "0.25",
                          "--nve", "--temperature", "100", "-o", str(out), "--quiet",
-                         "--checkpoint-every", "2"])
+                         "--checkpoint-every", "2", "--no-pairs"])
     assert rc == 0, err
     assert "INFO" not in err  # --quiet: the log goes to md.log only
     assert "INFO MD NVE: 10 steps" in (out / "md.log").read_text()
@@ -223,6 +223,11 @@ def test_md_writes_trajectory_settings_and_warnings(md_run):
     assert settings["steps"] == 10 and settings["field_source"] == "none"
     assert "warnings" in json.loads((out / "warnings.json").read_text())
     assert "10 steps" in text
+    import ase.io
+
+    atoms = ase.io.read(out / "trajectory_atoms.xyz", ":")
+    assert len(atoms) == 11 and atoms[-1].get_chemical_symbols() == ["O", "H", "H"]
+    np.testing.assert_allclose(atoms[-1].positions, frames[-1].positions, atol=1e-6)
 
 
 def test_md_refuses_a_crystal_and_another_run_in_its_folder(md_run, model_file, tmp_path):

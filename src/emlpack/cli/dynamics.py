@@ -52,6 +52,9 @@ def add_md(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the initial velocities")
     add_threads_argument(p, default=1)
     p.add_argument("--no-resume", action="store_true", help="start over (deletes the old run)")
+    p.add_argument("--no-pairs", action="store_true",
+                   help="also write trajectory_atoms.xyz: the atoms without the Es rows of the"
+                   " electron pairs (ASE masses, centre of mass, viewers)")
     add_quiet_argument(p)
 
     def run(args):
@@ -113,12 +116,30 @@ def add_md(sub) -> None:
         for w in warnings:
             log(f"warning: {w}")
         write_json(out / "warnings.json", {"warnings": warnings})
+        if args.no_pairs:
+            _write_atoms_only(out / "trajectory.xyz", out / "trajectory_atoms.xyz")
+            log(f"wrote {out / 'trajectory_atoms.xyz'} (atoms only)")
         log(f"{result.steps} steps, {result.watchdog_events} watchdog events,"
             f" {result.evaluations_per_step:.2f} evaluations/step -> {result.output}")
         log("done with warnings" if warnings else "done")
         return 0
 
     p.set_defaults(func=run, resumable=True)
+
+
+def _write_atoms_only(trajectory, path) -> None:
+    """The frames of ``trajectory`` without their ``Es`` rows (:func:`emlpack.io.split_pairs`)."""
+    import ase.io
+
+    from emlpack.io import split_pairs
+    from emlpack.io.extxyz import atomic_write
+
+    frames = []
+    for atoms in ase.io.read(trajectory, ":", format="extxyz"):
+        cores = split_pairs(atoms)
+        cores.info.pop("electron_pairs", None)
+        frames.append(cores)
+    atomic_write(path, lambda fh: ase.io.write(fh, frames, format="extxyz"))
 
 
 def _add_settings(json_path, args) -> None:
