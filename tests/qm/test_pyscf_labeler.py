@@ -45,6 +45,18 @@ def test_methane_frame0_reproduces_paper_data(tmp_path):
     assert "level=pbe0/aug-cc-pvtz" in out.read_text().splitlines()[1]
 
 
+def test_ethene_frame_reproduces_paper_data(tmp_path):
+    """The default-suite step beyond methane frame 0 (the slow test below does frames 0-2 of
+    six molecules): ethene frame 200, a double bond and its own field (~45 s at load 8)."""
+    src = shared_path(SUBSET)
+    out = tmp_path / "c2h4.xyz"
+    assert main(["relabel", str(src), "-o", str(out), "--index", "200:201", "--quiet"]) == 0
+    (d_e, d_f, d_c), = _check_relabeled(src, out, "200:201")
+    (frame,) = read_frames(src, "200:201")
+    assert frame.numbers.tolist().count(6) == 2 and np.abs(frame.field).max() > 0.05
+    assert d_e < TOL_E and d_f < TOL_F and d_c < TOL_C, (d_e, d_f, d_c)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("first", [0, 100, 200, 300, 400, 500])
 def test_first_three_frames_of_each_molecule(tmp_path, first):
