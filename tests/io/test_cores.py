@@ -124,3 +124,23 @@ def test_find_core_centres_errors():
         find_core_centres(
             numbers, np.array([[0.0, 0, 0], [1.5, 0, 0]]), np.array([[0.0, 0, 0.001]]), source="x"
         )
+
+
+def test_core_centre_tolerance_is_the_documented_0_01_angstrom():
+    """docs/conventions.md: a 1s centre is removed when it lies within 0.01 Å of its C/N/O
+    nucleus; 0.009 Å away it is removed; 0.011 Å away, with as many centres as valence + core
+    pairs, the file is refused with the distance named."""
+    from emlpack.io.cores import CORE_TOLERANCE
+
+    assert CORE_TOLERANCE == 0.01
+    numbers = np.array([8, 1, 1])
+    positions = np.array([[0, 0, 0], [0.96, 0, 0], [-0.24, 0.93, 0]])
+    pairs = np.array([[0.5, 0, 0], [-0.1, 0.5, 0], [-0.2, -0.2, 0.3], [-0.2, -0.2, -0.3]])
+    direction = np.array([0.6, -0.8, 0.0])
+    inside = np.vstack([pairs, 0.009 * direction])
+    kept, removed = split_core_centres(numbers, positions, inside)
+    np.testing.assert_array_equal(removed, [4])
+    outside = np.vstack([pairs, 0.011 * direction])
+    with pytest.raises(StructureError, match=r"atom 0 \(Z=8\) has no 1s core centre within"
+                       r" 0.01 Å \(nearest electron-pair row is 0.011 Å away\)"):
+        split_core_centres(numbers, positions, outside)
