@@ -324,3 +324,20 @@ def test_corrected_mode_forces_within_tolerance_of_tight_relaxation(water, tmp_p
     assert errors["corrected"][0] <= 2 * errors["warm"][0] + 1e-6, errors
     assert errors["corrected"][1] < 1e-8, errors
     assert runs["corrected"].evaluations_per_step <= runs["warm"].evaluations_per_step
+
+
+def test_watchdog_thresholds_are_the_documented_ones():
+    """docs/md.md: pairs closer than 0.2 Å, a pair farther than 2 Å from every core, or a
+    non-positive curvature at the check (every 50 steps) fail the step."""
+    w = Watchdog()
+    assert (w.min_pair_distance, w.max_core_distance, w.curvature_every) == (0.2, 2.0, 50)
+    cores = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    ok = {"min_curvature": 0.1}
+
+    def pairs(d_pairs, d_core):
+        return np.array([[0.5, 0.0, 0.0], [0.5, d_pairs, 0.0], [3.0, 0.0, d_core]])
+
+    assert w.check(cores, pairs(0.21, 1.99), ok) == ""
+    assert "(merged; threshold 0.2 Å)" in w.check(cores, pairs(0.19, 1.99), ok)
+    assert "from the nearest core (threshold 2 Å)" in w.check(cores, pairs(0.21, 2.01), ok)
+    assert "negative pair curvature" in w.check(cores, pairs(0.21, 1.99), {"min_curvature": 0.0})
