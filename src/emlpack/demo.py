@@ -16,7 +16,6 @@
 from __future__ import annotations
 
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -66,6 +65,7 @@ def generate_labels(store_path: Path, n_per_molecule: int = N_PER_MOLECULE,
     from tqdm import tqdm
 
     from emlpack.data.store import DatasetStore
+    from emlpack.qm.executor import Executor
 
     with DatasetStore(store_path, "a") as store:
         done = store.done_keys()
@@ -73,9 +73,11 @@ def generate_labels(store_path: Path, n_per_molecule: int = N_PER_MOLECULE,
         if not todo:
             print("  all labels found from an earlier run: reused")
             return
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            bar = tqdm(pool.map(_label_one, todo), total=len(todo), desc="  labeling",
-                       unit="conf")
+        with Executor(workers) as executor:
+            for task in todo:
+                executor.submit(_label_one, task)
+            results = (fut.result() for _, fut in executor.completed())
+            bar = tqdm(results, total=len(todo), desc="  labeling", unit="conf")
             for key, name, kind, s, error in bar:
                 if s is None:
                     store.add_failures([{"key": key, "molecule_id": name, "kind": kind,

@@ -620,7 +620,8 @@ def label_into_store(
     from tqdm import tqdm
 
     from emlpack.data.store import DatasetStore
-    from emlpack.qm.labeling import LabelingSummary, _Completion, _dask_client, _SerialPool
+    from emlpack.qm.executor import Executor
+    from emlpack.qm.labeling import LabelingSummary
 
     settings = settings or CP2KSettings()
     t0 = time.perf_counter()
@@ -633,17 +634,12 @@ def label_into_store(
     summary = LabelingSummary(str(store_path))
     todo = [it for it in items if it[0] not in done]
     summary.n_skipped_done = len(items) - len(todo)
-    use_dask = bool(scheduler) or workers > 0
-    client = _dask_client(scheduler, workers) if use_dask else _SerialPool()
+    executor = Executor(workers, scheduler)
     bar = tqdm(total=len(todo), desc="cp2k", unit="conf", disable=not progress, file=sys.stderr)
     try:
-        ac = _Completion(use_dask)
         for key, structure, stress in todo:
-            fut = client.submit(label_task, structure, settings, bool(stress), key, workdir,
-                                pure=False)
-            ac.add(fut, key)
-        for fut in ac:
-            key = ac.tag(fut)
+            executor.submit(label_task, structure, settings, bool(stress), key, workdir, tag=key)
+        for key, fut in executor.completed():
             try:
                 res = fut.result()
             except Exception as exc:  # noqa: BLE001 - e.g. a worker died: record it
@@ -659,7 +655,7 @@ def label_into_store(
             bar.update(1)
     finally:
         bar.close()
-        client.close()
+        executor.close()
         summary.n_records = len(store)
         store.close()
     summary.wall_time = time.perf_counter() - t0

@@ -18,7 +18,7 @@ import os
 import re
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,6 +26,7 @@ import numpy as np
 import yaml
 
 from emlpack.data.store import DatasetStore, StoreError
+from emlpack.qm.executor import Executor
 from emlpack.qm.levels import parse_level
 from emlpack.qm.pyscf_labeler import LabelingError, PySCFLabeler
 from emlpack.qm.recipe import Configuration, configurations
@@ -216,69 +217,6 @@ def label_task(config: Configuration, level: str, boys_starts: int, seed: int,
     return config, labeler(config.numbers, config.positions, config.field, config.charge)
 
 
-# ---------------------------------------------------------------------------------- executors
-class _SerialPool:
-    """In-process stand-in for a Dask client: tasks run when their result is asked for."""
-
-    class _Task:
-        def __init__(self, fn, args):
-            self.fn, self.args = fn, args
-
-        def result(self):
-            return self.fn(*self.args)
-
-    def submit(self, fn, *args, **_):
-        return self._Task(fn, args)
-
-    def close(self):
-        pass
-
-
-class _Completion:
-    """``as_completed`` over a growing set of futures (Dask or serial)."""
-
-    def __init__(self, dask: bool):
-        self._tags: dict = {}
-        if dask:
-            from distributed import as_completed
-
-            self._ac = as_completed()
-        else:
-            self._ac = None
-            self._queue: list = []
-
-    def add(self, future, tag) -> None:
-        self._tags[self._id(future)] = tag
-        if self._ac is not None:
-            self._ac.add(future)
-        else:
-            self._queue.append(future)
-
-    def _id(self, future):
-        return future.key if self._ac is not None else id(future)
-
-    def tag(self, future):
-        """The tag given to ``future`` in :meth:`add` (forgotten after this call)."""
-        return self._tags.pop(self._id(future))
-
-    def __iter__(self) -> Iterator:
-        if self._ac is not None:
-            yield from self._ac
-        else:
-            while self._queue:
-                yield self._queue.pop(0)
-
-
-def _dask_client(scheduler: str | None, workers: int):
-    from distributed import Client, LocalCluster
-
-    if scheduler:
-        return Client(scheduler)
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           dashboard_address=":0", silence_logs=40)
-    return Client(cluster)
-
-
 # ---------------------------------------------------------------------------------- driver
 @dataclass
 class LabelingSummary:
@@ -411,27 +349,24 @@ def run_labeling(
     need_probes = bool(todo) and any(s.get("dimer") for s in recipe["samples"])
     total = sum(len(k) for _, k in todo.values()) + len(hydride_keys)
 
-    n_workers = (os.cpu_count() or 1) if workers is None else int(workers)
-    use_dask = bool(scheduler) or n_workers > 0
-    if threads is None:
-        threads = max(1, (os.cpu_count() or 1) // max(n_workers, 1)) if use_dask else None
-    client = _dask_client(scheduler, n_workers) if use_dask else _SerialPool()
+    executor = Executor(workers, scheduler)
+    n_workers = executor.workers
+    if threads is None and executor.uses_dask:
+        threads = executor.threads_per_task
     prep_dir = Path(prep_dir) if prep_dir is not None else Path(str(store_path) + ".prep")
     bar = tqdm(total=total, desc="label", unit="conf", disable=not progress, file=sys.stderr)
     waiting = list(todo)  # molecules still to prepare, in order
     in_flight = {"prep": 0}
     try:
-        ac = _Completion(use_dask)
-
         def submit_prepare(src, name, hessian=True, level_=prep_level):
             cached = _load_prepared(prep_dir, name, level_)
             if cached is not None:
-                fut = client.submit(_identity, cached, pure=False, priority=_PRIORITY_PREPARE)
+                executor.submit(_identity, cached, tag=("prep", name),
+                                priority=_PRIORITY_PREPARE)
             else:
-                fut = client.submit(prepare_task, src, level_, bool(prep.get("optimize", True)),
-                                    float(prep.get("fmax", 0.01)), seed, threads, hessian,
-                                    pure=False, priority=_PRIORITY_PREPARE)
-            ac.add(fut, ("prep", name))
+                executor.submit(prepare_task, src, level_, bool(prep.get("optimize", True)),
+                                float(prep.get("fmax", 0.01)), seed, threads, hessian,
+                                tag=("prep", name), priority=_PRIORITY_PREPARE)
 
         def feed() -> None:
             """Keep one preparation per worker ahead of the labeling."""
@@ -441,8 +376,8 @@ def run_labeling(
                 in_flight["prep"] += 1
 
         def submit_label(conf: Configuration, tag: str) -> None:
-            ac.add(client.submit(label_task, conf, level, boys, seed, threads,
-                                 pure=False, priority=_PRIORITY_LABEL), ("label", tag))
+            executor.submit(label_task, conf, level, boys, seed, threads, tag=("label", tag),
+                            priority=_PRIORITY_LABEL)
 
         probes: dict[str, Molecule] = {}
         for h, (_key, smi) in hydride_keys.items():
@@ -462,8 +397,7 @@ def run_labeling(
             summary.failures.append(f"{name}: {reason}")
             bar.update(len(keys))
 
-        for fut in ac:
-            kind, name = ac.tag(fut)
+        for (kind, name), fut in executor.completed():
             stop = False
             if kind == "prep":
                 if not name.startswith(("probe-", "hydride-")):
@@ -507,7 +441,7 @@ def run_labeling(
                     continue
                 for conf in confs:
                     submit_label(conf, conf.key)
-                feed()  # after the labels: a serial pool runs tasks in submission order
+                feed()
             else:
                 try:
                     conf, res = fut.result()
@@ -534,7 +468,7 @@ def run_labeling(
                     break
     finally:
         bar.close()
-        client.close()
+        executor.close()
         summary.n_records = len(store)
         store.close()
     summary.wall_time = time.perf_counter() - t0

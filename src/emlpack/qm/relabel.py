@@ -157,18 +157,11 @@ def _label_frame(lab: PySCFLabeler, frame: RefFrame) -> LabelResult:
 
 def _results_in_order(frames, lab, workers: int, scheduler: str | None):
     """Label results in frame order, computed here or on Dask (yielded as they are needed)."""
-    if not workers and not scheduler:
-        for frame in frames:
-            yield _label_frame(lab, frame)
-        return
-    from emlpack.qm.labeling import _dask_client
+    from functools import partial
 
-    client = _dask_client(scheduler, workers)
-    try:
-        if not scheduler:
-            lab.threads = max(1, (os.cpu_count() or 1) // workers)
-        futures = [client.submit(_label_frame, lab, f, pure=False) for f in frames]
-        for fut in futures:
-            yield fut.result()
-    finally:
-        client.close()
+    from emlpack.qm.executor import Executor
+
+    with Executor(workers or 0, scheduler) as executor:
+        if executor.uses_dask and not scheduler:
+            lab.threads = executor.threads_per_task
+        yield from executor.map_ordered(partial(_label_frame, lab), frames)
