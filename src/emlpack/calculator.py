@@ -42,6 +42,7 @@ from ase.stress import full_3x3_to_voigt_6_stress
 
 from emlpack.bonding import bonding_changes
 from emlpack.ensemble import ModelEnsemble, as_ensemble
+from emlpack.geometry import carry_pairs
 from emlpack.io.ase_convert import FIELD_KEY, PAIRS_KEY, atoms_to_structure
 from emlpack.nn.potential import EMLP
 from emlpack.relax import RelaxOptions, RelaxResult, relax_pairs
@@ -114,7 +115,7 @@ class EMLPCalculator(Calculator):
         self.warnings: list[str] = []
         self._last_field: np.ndarray | None = None
         self._given_pairs: np.ndarray | None = None
-        self._warm: tuple[np.ndarray, np.ndarray, list[np.ndarray]] | None = None
+        self._warm: tuple | None = None  # (numbers, cores, cell or None, pairs per member)
         self._bonding_reference: tuple[np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ state
@@ -147,15 +148,12 @@ class EMLPCalculator(Calculator):
             self._given_pairs is None or not np.array_equal(given, self._given_pairs)
         )
         if self._warm is not None and not new_given:
-            numbers, cores, member_pairs = self._warm
+            numbers, cores, cell, member_pairs = self._warm
             if np.array_equal(numbers, atoms.numbers):
-                out = []
-                for pairs in member_pairs:
-                    # follow the cores: each pair moves rigidly with its nearest core
-                    d = np.linalg.norm(pairs[:, None] - cores[None], axis=-1)
-                    nearest = np.argmin(d, axis=1)
-                    out.append(pairs + (atoms.positions - cores)[nearest])
-                return out
+                # follow the cell and the cores: each pair moves with its nearest core
+                new_cell = atoms.cell[:] if np.any(atoms.pbc) else None
+                return [carry_pairs(pairs, cores, atoms.positions, cell, new_cell, atoms.pbc)
+                        for pairs in member_pairs]
         if given is not None:
             self._given_pairs = given.copy()
             return [given] * n
@@ -238,7 +236,8 @@ class EMLPCalculator(Calculator):
             log.warning("%s: %s", atoms.get_chemical_formula(), text)
         self.warnings = warnings
         self._last_field = field.copy()
-        self._warm = (atoms.numbers.copy(), atoms.positions.copy(), pairs_of)
+        self._warm = (atoms.numbers.copy(), atoms.positions.copy(),
+                      atoms.cell[:].copy() if np.any(atoms.pbc) else None, pairs_of)
 
     def _spread_warnings(self, n_atoms: int) -> list[str]:
         if len(self.ensemble) < 2:

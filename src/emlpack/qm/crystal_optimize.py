@@ -26,7 +26,7 @@ from ase.calculators.calculator import Calculator, all_changes
 from ase.stress import full_3x3_to_voigt_6_stress
 
 from emlpack.errors import EmlpackError
-from emlpack.qm.crystal_sampling import _carry_pairs
+from emlpack.qm.crystal_sampling import carry_reference_pairs
 from emlpack.structure import Structure
 from emlpack.units import EV_PER_A3_IN_GPA
 
@@ -82,7 +82,7 @@ class LabelerCalculator(Calculator):
         if labeled is None:
             start = self.last if self.last is not None else self.template
             guess = start.copy(positions=positions, cell=cell,
-                               pairs=_carry_pairs(start, positions, cell))
+                               pairs=carry_reference_pairs(start, positions, cell))
             labeled = self.labeler(guess, stress=True)
             if labeled.stress is None or labeled.forces is None or labeled.energy is None:
                 raise CrystalOptimizationError(
@@ -131,7 +131,7 @@ def symmetrized_start(structure: Structure, symprec: float) -> Structure:
     refine_symmetry(atoms, symprec=symprec)
     positions, cell = atoms.get_positions(), np.array(atoms.get_cell())
     return structure.copy(positions=positions, cell=cell,
-                          pairs=_carry_pairs(structure, positions, cell))
+                          pairs=carry_reference_pairs(structure, positions, cell))
 
 
 def optimize_crystal(labeler: Labeler, structure: Structure, *, fmax: float = 0.01,

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from emlpack.geometry import carry_pairs
 from emlpack.qm.sampling import cell_normal_mode_sample, random_field
 from emlpack.structure import Structure
 
@@ -54,16 +55,12 @@ def sample_rng(seed: int, round_index: int, set_name: str, index: int) -> np.ran
     return np.random.default_rng([int(seed), int(round_index), SETS.index(set_name), int(index)])
 
 
-def _carry_pairs(reference: Structure, positions: np.ndarray, cell: np.ndarray) -> np.ndarray:
+def carry_reference_pairs(reference: Structure, positions: np.ndarray,
+                          cell: np.ndarray) -> np.ndarray:
     """Reference pairs moved with the cell (same fractional coordinates) and then with their
     nearest core's displacement (minimum image)."""
-    inv = np.linalg.inv(reference.cell)
-    pairs = reference.pairs @ inv @ cell
-    cores_affine = reference.positions @ inv @ cell
-    d = (reference.pairs[:, None, :] - reference.positions[None, :, :]) @ inv
-    d = np.linalg.norm((d - np.round(d)) @ reference.cell, axis=-1)
-    nearest = np.argmin(d, axis=1)
-    return pairs + (positions - cores_affine)[nearest]
+    return carry_pairs(reference.pairs, reference.positions, positions, reference.cell, cell,
+                       reference.pbc)
 
 
 def random_strain(rng: np.random.Generator, max_strain: float) -> np.ndarray:
@@ -98,8 +95,9 @@ def hessian_sample(reference: Structure, hessian: HessianLike, rng: np.random.Ge
 
 def _unlabeled(reference: Structure, positions: np.ndarray, cell: np.ndarray) -> Structure:
     return reference.copy(positions=positions, cell=cell,
-                          pairs=_carry_pairs(reference, positions, cell), field=np.zeros(3),
-                          energy=None, forces=None, pair_forces=None, stress=None, info={})
+                          pairs=carry_reference_pairs(reference, positions, cell),
+                          field=np.zeros(3), energy=None, forces=None, pair_forces=None,
+                          stress=None, info={})
 
 
 def with_set(structure: Structure, set_name: str, rng: np.random.Generator,
