@@ -100,35 +100,6 @@ def test_task_layout():
     assert len({t.key for t in tasks}) == 19
 
 
-def test_fd_relaxed_ion_dielectric_through_the_relax_hook(crystal):
-    """The default-suite version of the slow test below: ``relax`` optimises the cores of the
-    6 field tasks only (strained tasks pass through), so the dielectric is the relaxed-ion
-    one while stiffness and piezo stay clamped-ion."""
-    model, s = crystal
-    res0 = optimize(model, s, fmax=1e-10)
-    chord = {"hessian": res0.hessian, "hessian_every": 0}
-    calls = []
-
-    def relax(x):
-        if not np.any(x.field):
-            return x
-        r = optimize(model, x, fmax=1e-10, **chord)
-        assert r.converged, r.reason
-        calls.append(np.abs(r.structure.positions - x.positions).max())
-        return r.structure
-
-    settings = FDSettings(field_step=1e-3, strain_step=1e-4, points=2)
-    fd = compute_reference_tensors(ModelLabeler(model, fmax=1e-10), s, settings, relax=relax)
-    an = crystal_response(model, s)
-    assert fd.relaxed_ions and len(calls) == 6 and min(calls) > 1e-6  # the cores did move
-    chi = an.dielectric_relaxed - np.eye(3)
-    assert np.abs(an.dielectric_clamped - an.dielectric_relaxed).max() > 1e-2 * np.abs(chi).max()
-    np.testing.assert_allclose(fd.dielectric - np.eye(3), chi, atol=1e-4 * np.abs(chi).max())
-    c = voigt_stiffness(an.stiffness_clamped)
-    np.testing.assert_allclose(fd.stiffness_voigt, c, atol=1e-4 * np.abs(c).max())
-
-
-@pytest.mark.slow  # ~30 s (18 position optimisations); the test above is its cheap version
 def test_fd_relaxed_ion_tensors_with_a_relax_callable(crystal):
     """Cores relaxed at every perturbation (``relax``) give the relaxed-ion tensors."""
     model, s = crystal

@@ -4,7 +4,6 @@ guess + relaxation reaches the same minimum as relaxing from the DFT centres."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from scipy.optimize import linear_sum_assignment
 
 from emlpack.guess import guess_pairs, lewis_pairs
@@ -53,14 +52,12 @@ def _same_minimum_rate(method: str, frames: str):
 
 # The fixture model has random weights: its minima are not chemical and some are shallow, so
 # the rate measures the guess against that landscape (measured: Lewis 6/10, see the report).
-@pytest.mark.slow  # ~160 s
 def test_lewis_guess_relaxes_to_the_dft_centre_minimum():
     same, tried = _same_minimum_rate("lewis", "0:600:50")
     print(f"Lewis guess: same minimum as the DFT centres for {same}/{tried}")
     assert tried >= 6 and same >= 0.5 * tried
 
 
-@pytest.mark.slow
 def test_boys_guess_relaxes_to_the_dft_centre_minimum():
     same, tried = _same_minimum_rate("boys", "0:600:50")
     print(f"Boys guess: same minimum as the DFT centres for {same}/{tried}")
