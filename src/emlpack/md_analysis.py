@@ -27,13 +27,13 @@ import io
 import json
 import math
 import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
+from emlpack._files import write_bytes_atomic, write_json_atomic
 from emlpack.errors import EmlpackError
 
 #: jump (eV per atom) below which a run is stable (paper)
@@ -59,8 +59,6 @@ __all__ = [
     "run_analysis",
     "run_md_ir",
     "trajectory_file",
-    "write_bytes_atomic",
-    "write_json_atomic",
 ]
 
 
@@ -285,29 +283,6 @@ def analyze_trajectory(
 
 
 # ------------------------------------------------------------------------------------ plot
-def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to a temporary file beside ``path`` and rename it onto ``path``."""
-    path = Path(path)
-    directory = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def write_json_atomic(path: str | os.PathLike, data) -> None:
-    """JSON (indent 1) written atomically."""
-    write_bytes_atomic(path, (json.dumps(data, indent=1) + "\n").encode())
-
-
 def plot_conserved(
     runs: Sequence[ConservedAnalysis | str | os.PathLike],
     png_path: str | os.PathLike,

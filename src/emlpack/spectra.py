@@ -474,7 +474,7 @@ def write_dipole_ir(
     """Write the MD spectrum as JSON and optionally a PNG (both atomically), with the
     ``harmonic`` spectrum (an :class:`IRSpectrum` or (wavenumbers cm^-1, intensities km/mol);
     Lorentzians of ``fwhm``, default the MD resolution) overlaid."""
-    from emlpack.md_analysis import write_bytes_atomic, write_json_atomic
+    from emlpack._files import write_bytes_atomic, write_json_atomic
 
     data = spectrum.as_dict()
     fwhm = spectrum.resolution if fwhm is None else fwhm

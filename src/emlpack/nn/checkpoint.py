@@ -8,13 +8,12 @@ corrupt checkpoint).
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import torch
 
 from emlpack import __version__
+from emlpack._files import atomic_path
 from emlpack.errors import EmlpackError
 from emlpack.nn.potential import EMLP, ModelConfig
 
@@ -40,15 +39,8 @@ def save_model(model: EMLP, path: str | Path, metadata: dict | None = None) -> P
         "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
         "metadata": dict(metadata or {}),
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         torch.save(payload, tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
 
 

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import torch
 
+from emlpack._files import write_text_atomic
 from emlpack.errors import EmlpackError
 
 PRETRAINED_DIR = Path(__file__).resolve().parent
@@ -106,7 +107,5 @@ def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: s
         out["source_checkpoint"] = Path(path).name
         written.append(save_model(model, folder / f"model-{k}.pt", out))
     card_path = folder / "card.md"
-    tmp = card_path.with_name(".card.md.tmp")
-    tmp.write_text(card)
-    tmp.replace(card_path)
+    write_text_atomic(card_path, card)
     return [*written, card_path]

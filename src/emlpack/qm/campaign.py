@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from emlpack._files import atomic_path, write_text_atomic
 from emlpack.data.shards import (
     MOLECULES_FILE,
     SHARD_DIR,
@@ -166,13 +167,13 @@ def init_campaign(folder: str | Path, smiles_csv: str | Path, seed: int = 0,
         "fractions": [0.9, 0.05, 0.05],
         "recipe": campaign_recipe(samples_per_molecule, prepare_level),
     }
-    _write_text(folder / CAMPAIGN_FILE, yaml.safe_dump(settings, sort_keys=False))
+    write_text_atomic(folder / CAMPAIGN_FILE, yaml.safe_dump(settings, sort_keys=False))
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=["name", "source", "smiles", "n_heavy", "split"],
                             extrasaction="ignore", lineterminator="\n")
     writer.writeheader()
     writer.writerows(molecules)
-    _write_text(folder / MOLECULES_FILE, buf.getvalue())
+    write_text_atomic(folder / MOLECULES_FILE, buf.getvalue())
     write_card(folder)
     return molecules
 
@@ -201,21 +202,19 @@ def export_shard(folder: str | Path, store: DatasetStore, run_info: dict) -> Pat
     paths = shard_paths(folder)
     number = int(paths[-1].stem) + 1 if paths else 0
     final = folder / SHARD_DIR / f"{number:04d}.h5"
-    tmp = final.with_name(f".{final.name}.{os.getpid()}.tmp")
-    tmp.unlink(missing_ok=True)
     refs = store.references()
-    with DatasetStore(tmp, "a", compact=True) as shard:
-        shard.append([store.structure(i) for i in new_idx])
-        shard.add_failures(new_fail)
-        for i in new_idx:
-            s = store.structure(i)
-            if s.info.get("kind") == "hydride" and s.info["molecule_id"] in refs:
-                ref = refs[s.info["molecule_id"]]
-                shard.set_reference(s.info["molecule_id"], ref["energy"], ref["level"])
-        shard.set_metadata(**{f"run_{k}": v for k, v in run_info.items()},
-                           recipe=store.metadata.get("recipe", ""))
-    Path(str(tmp) + ".lock").unlink(missing_ok=True)
-    os.replace(tmp, final)
+    with atomic_path(final) as tmp:
+        with DatasetStore(tmp, "a", compact=True) as shard:
+            shard.append([store.structure(i) for i in new_idx])
+            shard.add_failures(new_fail)
+            for i in new_idx:
+                s = store.structure(i)
+                if s.info.get("kind") == "hydride" and s.info["molecule_id"] in refs:
+                    ref = refs[s.info["molecule_id"]]
+                    shard.set_reference(s.info["molecule_id"], ref["energy"], ref["level"])
+            shard.set_metadata(**{f"run_{k}": v for k, v in run_info.items()},
+                               recipe=store.metadata.get("recipe", ""))
+        Path(str(tmp) + ".lock").unlink(missing_ok=True)
     return final
 
 
@@ -421,11 +420,5 @@ def write_card(folder: str | Path) -> Path:
               f"`{SHARD_DIR}/NNNN.h5` labels (emlpack HDF5 stores, never rewritten);",
               "`prepared/NAME.npz` the prepared geometry and Hessian of each molecule.", ""]
     path = folder / "README.md"
-    _write_text(path, "\n".join(lines))
+    write_text_atomic(path, "\n".join(lines))
     return path
-
-
-def _write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)

@@ -10,13 +10,12 @@ TODO: switch to :mod:`emlpack.io` once its extxyz reader/writer exists (one pars
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from emlpack._files import atomic_path
 from emlpack.errors import EmlpackError
 from emlpack.structure import PAIR_NUMBER
 from emlpack.units import FIELD_AU_IN_V_PER_A
@@ -125,14 +124,6 @@ def write_frames(path: str | Path, frames: list[RefFrame]) -> None:
     """Write frames atomically: a temporary file in the same directory, then a rename."""
     from ase.io import write
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp, [frame_to_atoms(f) for f in frames], format="extxyz", write_results=False)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path) as tmp:
+        write(str(tmp), [frame_to_atoms(f) for f in frames], format="extxyz",
+              write_results=False)

@@ -8,7 +8,6 @@ Failed frames are left out of the output and listed in ``OUT.failed.yaml``; the 
 
 from __future__ import annotations
 
-import os
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from emlpack._files import write_text_atomic
 from emlpack.qm.levels import parse_level
 from emlpack.qm.pyscf_labeler import LabelResult, PySCFLabeler
 from emlpack.qm.refxyz import RefFrame, read_frames, write_frames
@@ -143,9 +143,8 @@ def relabel(
     write_frames(out_path, out_frames)
     failed_path = Path(str(out_path) + ".failed.yaml")
     if report.failures:
-        tmp = failed_path.with_name(failed_path.name + ".tmp")
-        tmp.write_text(yaml.safe_dump(report.failures, sort_keys=False, width=1000))
-        os.replace(tmp, failed_path)
+        write_text_atomic(failed_path,
+                          yaml.safe_dump(report.failures, sort_keys=False, width=1000))
     elif failed_path.exists():
         failed_path.unlink()
     return report
