@@ -215,20 +215,27 @@ class _CoulombPairs:
             rows = torch.nonzero(g.is_pair[members]).squeeze(1)
             self.periodic.append((b, members, rows, g.kvec_n[g.kvec_batch == b].double()))
 
-    def __call__(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def __call__(
+        self, x: torch.Tensor, active: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Gradient and Hessians at ``x``; with ``active`` (B,) bool only those structures are
+        computed (the others' entries are zero)."""
         prob = self.prob
         b, n = prob.g.n_structures, prob.n_max
         pos = self.positions.index_put((prob.pair_idx,), x.detach().double())
         grad = pos.new_zeros(len(prob.pair_idx), 3)
         hess = pos.new_zeros(b, n, n, 3, 3)
-        if len(self.ci):
-            gr, h = coulomb_pair_derivatives(pos[self.cj] - pos[self.ci], self.qq, self.gamma,
-                                             self.eps)
-            s = prob.g.batch[self.ci]
-            li, lj = self.local_of[self.ci], self.local_of[self.cj]
+        ci, cj, qq = self.ci, self.cj, self.qq
+        if active is not None and len(ci):
+            keep = active[prob.g.batch[ci]]
+            ci, cj, qq = ci[keep], cj[keep], qq[keep]
+        if len(ci):
+            gr, h = coulomb_pair_derivatives(pos[cj] - pos[ci], qq, self.gamma, self.eps)
+            s = prob.g.batch[ci]
+            li, lj = self.local_of[ci], self.local_of[cj]
             pi, pj = li >= 0, lj >= 0
-            grad.index_add_(0, self.row_of[self.cj[pj]], gr[pj])
-            grad.index_add_(0, self.row_of[self.ci[pi]], -gr[pi])
+            grad.index_add_(0, self.row_of[cj[pj]], gr[pj])
+            grad.index_add_(0, self.row_of[ci[pi]], -gr[pi])
             hess.index_put_((s[pi], li[pi], li[pi]), h[pi], accumulate=True)
             hess.index_put_((s[pj], lj[pj], lj[pj]), h[pj], accumulate=True)
             both = pi & pj
@@ -236,6 +243,8 @@ class _CoulombPairs:
             hess.index_put_((s[both], lj[both], li[both]), -h[both], accumulate=True)
         g = prob.g
         for s_idx, members, rows, kn in self.periodic:
+            if active is not None and not bool(active[s_idx]):
+                continue
             gr, h = ewald_reciprocal_derivatives(
                 pos[members], self.charges[members], g.cell[s_idx].double(), kn, self.gamma,
                 rows,
@@ -376,12 +385,18 @@ def _newton_step(prob, hessian, gp, held, floor, active, alpha, max_step):
     the longest pair displacement capped to ``max_step`` (float or (B,)) and scaled by
     ``alpha`` (B,)."""
     dtype = hessian.dtype
-    free = (~held).to(dtype)
-    reduced = hessian * free[:, :, None] * free[:, None, :] + torch.diag_embed(held.to(dtype))
+    # only the active structures (converged ones would cost an eigendecomposition each)
+    idx = torch.nonzero(active).squeeze(1)
+    free = (~held[idx]).to(dtype)
+    reduced = hessian[idx] * free[:, :, None] * free[:, None, :] + torch.diag_embed(
+        held[idx].to(dtype)
+    )
     evals, evecs = torch.linalg.eigh(reduced)
     shift = torch.clamp(floor - evals[:, :1], min=0.0)
-    coef = (evecs.transpose(1, 2) @ gp[:, :, None]).squeeze(-1) / (evals + shift)
-    step = -prob.unpad((evecs @ coef[:, :, None]).squeeze(-1))
+    coef = (evecs.transpose(1, 2) @ gp[idx][:, :, None]).squeeze(-1) / (evals + shift)
+    full = gp.new_zeros(gp.shape)
+    full[idx] = (evecs @ coef[:, :, None]).squeeze(-1)
+    step = -prob.unpad(full)
     longest = prob.per_structure_max_norm(step)
     scale = torch.clamp(max_step / torch.clamp(longest, min=1e-300), max=1.0)
     step = step * (scale * alpha)[prob.pair_batch, None]
@@ -428,7 +443,7 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         x_new = torch.clamp(x + step, lower, upper)
         step = x_new - x
         e_new, g_new = evaluate(x_new, active, energy, grad)
-        gc_new, hc_new = coulomb(x_new)
+        gc_new, hc_new = coulomb(x_new, active)
         n_eval += active.long()
         iters += active.long()
         slope = segment_sum((grad * step).sum(1), prob.pair_batch, b)
