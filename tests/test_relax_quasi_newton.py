@@ -114,3 +114,18 @@ def test_unknown_method_is_refused(small):
     s = _starts("0:1")[0]
     with pytest.raises(ValueError, match="initial_hessian"):
         relax_pairs(small, s, initial_hessian="newton")
+
+
+def test_overrides_do_not_change_the_callers_options():
+    from emlpack.io import read_structures
+    from emlpack.relax import RelaxOptions, relax_pairs
+    from tests.conftest import shared_path
+    from tests.test_reference_fixtures import load_model
+
+    model = load_model("small")
+    methane = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), index=63)[0]
+    opts = RelaxOptions(fmax=1e-3)
+    with pytest.raises(TypeError, match="unknown relaxation option"):
+        relax_pairs(model, methane, opts, no_such_option=1)
+    relax_pairs(model, methane, opts, fmax=1e-5, max_iterations=3)
+    assert opts.fmax == 1e-3 and opts.max_iterations == 100

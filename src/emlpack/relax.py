@@ -329,10 +329,10 @@ def relax_pairs(
     if isinstance(structures, Structure):
         structures = [structures]
     opts = options or RelaxOptions()
-    for k, v in overrides.items():
+    for k in overrides:
         if not hasattr(opts, k):
             raise TypeError(f"unknown relaxation option {k!r}")
-        setattr(opts, k, v)
+    opts = replace(opts, **overrides)  # the caller's options are never changed
     if opts.short_range_start not in ("lumped", "zero"):
         raise ValueError(
             f"short_range_start must be 'lumped' or 'zero', not {opts.short_range_start!r}"
@@ -348,9 +348,26 @@ def relax_pairs(
     for p, _ in grad_flags:
         p.requires_grad_(False)
     try:
-        if opts.initial_hessian == "coulomb":
-            return _relax_coulomb(model, structures, opts, bounds)
-        return _relax(model, structures, opts, bounds)
+        if opts.initial_hessian != "coulomb":
+            return _relax(model, structures, opts, bounds)
+        results = _relax_coulomb(model, structures, opts, bounds)
+        # a failed quasi-Newton relaxation (e.g. slid into a merged pair, off to a neighbouring
+        # basin of a poorly trained model) is tried again with the exact-Hessian Newton method
+        # from the same start, so the default fails no more often than the exact method
+        retry = [k for k, r in enumerate(results) if r.failed]
+        if retry:
+            sub_bounds = None if bounds is None else [bounds[k] for k in retry]
+            again = _relax(model, [structures[k] for k in retry],
+                           replace(opts, initial_hessian="exact"), sub_bounds)
+            for k, r in zip(retry, again, strict=True):
+                first = results[k]
+                r.iterations += first.iterations
+                r.n_evaluations += first.n_evaluations
+                r.n_hessians += first.n_hessians
+                if r.failed:
+                    r.reason = f"{first.reason} (exact-Hessian retry: {r.reason})"
+                results[k] = r
+        return results
     finally:
         for p, flag in grad_flags:
             p.requires_grad_(flag)
