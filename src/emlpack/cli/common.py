@@ -184,12 +184,27 @@ def _looks_like_text(path: Path) -> bool:
     return b"\x00" not in chunk
 
 
-def load_model(name_or_path: str):
-    """The one place that turns a MODEL argument into a float64 model (after the file check)."""
+def load_member(name_or_path: str):
+    """The one place that turns a MODEL argument (a checkpoint file, a folder holding one, or
+    a pretrained name) into an :class:`emlpack.ensemble.ModelMember` in float64 (model,
+    training reference for the DFT energy scale, training elements), after the file check."""
+    from emlpack.ensemble import load_member as _load
     from emlpack.nn.checkpoint import CheckpointError
-    from emlpack.nn.checkpoint import load_model as _load
+    from emlpack.pretrained import resolve_model
 
-    path = check_model_file(name_or_path)
+    given = Path(name_or_path)
+    is_name = not given.exists() and not given.suffix and os.sep not in str(name_or_path)
+    path = given
+    if is_name or (given.is_dir() and any(given.glob("*.pt"))):
+        files, label = resolve_model(name_or_path)
+        if len(files) > 1:
+            raise InputError(
+                f"{label}: an ensemble of {len(files)} models; the command-line properties"
+                f" evaluate one model for now: pass one of its files (e.g. {files[0]}), or use"
+                f" EMLPCalculator(model={str(name_or_path)!r}) in Python for the ensemble mean"
+                " and spread")
+        path = files[0]
+    path = check_model_file(path)
     try:
         return _load(path)
     except CheckpointError as exc:
@@ -197,6 +212,25 @@ def load_model(name_or_path: str):
             raise ModelFileError(f"{path}: not an emlpack model (a PyTorch file holding pickled"
                                  " objects; emlpack reads weights only)") from exc
         raise
+
+
+def load_model(name_or_path: str):
+    """The float64 :class:`EMLP` of a MODEL argument (see :func:`load_member`)."""
+    return load_member(name_or_path).model
+
+
+def energy_record(member, structure, model_energy: float) -> dict:
+    """Energies for a JSON output: ``energy_eV`` on the DFT scale when the checkpoint holds its
+    DFT hydride references (neutral molecules), else the model's own; with the scale named
+    and the relative and raw model energies beside it (see docs/pretrained.md)."""
+    out = {"energy_eV": float(model_energy), "energy_scale": "model",
+           "model_energy_eV": float(model_energy)}
+    if member.hydride_delta() is not None and not structure.pbc and structure.charge == 0:
+        out["energy_eV"] = float(model_energy + member.dft_shift(structure.numbers))
+        out["energy_relative_eV"] = float(model_energy
+                                          + member.relative_shift(structure.numbers))
+        out["energy_scale"] = "dft"
+    return out
 
 
 def model_elements(model) -> tuple[int, ...]:

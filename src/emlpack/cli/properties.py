@@ -20,7 +20,8 @@ from emlpack.cli.common import (
     add_structure_arguments,
     add_threads_argument,
     apply_field,
-    load_model,
+    energy_record,
+    load_member,
     positive,
     read_structure,
     set_threads,
@@ -51,8 +52,9 @@ def _common(p, relax_default: str, output_default: str, output_help: str) -> Non
 class Prepared:
     """The checked, relaxed input of a property command and what was noticed on the way."""
 
-    def __init__(self, model, structure, where, field_info, warnings, relax_info, log):
-        self.model, self.structure, self.where = model, structure, where
+    def __init__(self, member, structure, where, field_info, warnings, relax_info, log):
+        self.member, self.model = member, member.model
+        self.structure, self.where = structure, where
         self.field_info, self.warnings, self.relax_info, self.log = (
             field_info, warnings, relax_info, log)
 
@@ -87,12 +89,13 @@ def prepare(args, periodic: bool | None, command: str) -> Prepared:
     positive(args.fmax, "--fmax")
     positive(args.max_iterations, "--max-iterations")
     set_threads(args.threads)
-    model = load_model(args.model)
+    member = load_member(args.model)
+    model = member.model
     s, where = read_structure(args, model, log, periodic=periodic, command=command)
     s, field_info = apply_field(s, args, where, log)
     warnings: list[str] = []
     s, relax_info = relax(model, s, args.relax, args, log, warnings)
-    return Prepared(model, s, where, field_info, warnings, relax_info, log)
+    return Prepared(member, s, where, field_info, warnings, relax_info, log)
 
 
 def relax(model, s, level: str, args, log: Log, warnings: list[str]):
@@ -134,7 +137,7 @@ def relax(model, s, level: str, args, log: Log, warnings: list[str]):
     log(f"optimised in {res.iterations} iterations ({time.perf_counter() - t0:.1f} s):"
         f" energy {res.energy:.6f} eV, max force {res.max_force:.2e} eV/Å")
     info["optimisation"] = {"converged": bool(res.converged), "iterations": int(res.iterations),
-                            "energy_eV": float(res.energy),
+                            "model_energy_eV": float(res.energy),
                             "max_force_eV_per_A": float(res.max_force),
                             "lowest_internal_hessian_eigenvalue": float(res.min_curvature),
                             "reason": res.reason}
@@ -177,7 +180,7 @@ def add_optimize(sub) -> None:
         else:
             write_structures(out, [s])
         data = prep.record(args, {
-            "energy_eV": float(energy["energy"]),
+            **energy_record(prep.member, s, energy["energy"]),
             "numbers": s.numbers.tolist(), "positions_A": s.positions.tolist(),
             "pairs_A": s.pairs.tolist(),
         })
