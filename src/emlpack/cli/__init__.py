@@ -15,6 +15,7 @@ import argparse
 import sys
 
 from emlpack.errors import EmlpackError
+from emlpack.threads import configure_thread_environment
 
 #: exit status of a user error (as argparse's own) and of an interrupt (128 + SIGINT)
 EXIT_USER_ERROR = 2
@@ -50,6 +51,10 @@ def one_line(exc: BaseException) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     debug = getattr(args, "debug", False)
+    # before torch is imported: idle OpenMP threads sleep (a busy machine otherwise makes every
+    # default-threaded call 10-60x slower, see emlpack.threads); --threads is checked later
+    threads = getattr(args, "threads", None)
+    configure_thread_environment(threads if isinstance(threads, int) and threads >= 1 else None)
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

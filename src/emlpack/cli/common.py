@@ -100,15 +100,13 @@ def add_quiet_argument(p) -> None:
 
 
 def set_threads(n: int | None) -> None:
-    """``torch.set_num_threads(n)``; idle OpenMP threads should sleep (OMP_WAIT_POLICY)."""
-    if n is None:
-        return
-    if n < 1:
-        raise InputError(f"--threads must be at least 1, got {n}")
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    import torch
+    """torch's threads: ``n``, else the policy of :mod:`emlpack.threads` (passive waiting, at
+    most min(cores, 4) threads unless OMP_NUM_THREADS says otherwise)."""
+    from emlpack.threads import apply_threads
 
-    torch.set_num_threads(int(n))
+    if n is not None and n < 1:
+        raise InputError(f"--threads must be at least 1, got {n}")
+    apply_threads(n)
 
 
 def positive(value, name: str, allow_zero: bool = False) -> None:
