@@ -115,6 +115,7 @@ def test_every_stage_writes_its_outputs(study_run):
     assert len(freqs) == 3 * 5 - 6 and np.all(freqs > 500)  # a minimum: real frequencies
     assert np.all(np.array(dft["intensities_km_per_mol"]) >= 0)
     assert (work / "figure3_md.png").stat().st_size > 1000
+    assert (work / "figure3_series.png").stat().st_size > 1000
     assert (work / "figure4_ir.png").stat().st_size > 1000
     assert (root / "results" / "results.json").exists()
     md = (root / "results" / "results.md").read_text()

@@ -247,6 +247,8 @@ def stage_train(study: Study) -> list[Path]:
     from emlpack.train.trainer import train
 
     t = study.cfg.get("training", {})
+    split = study.shards().split_indices()
+    n_data = len(study.shards().structures)
     paths = []
     for group, augmented in study.groups().items():
         for seed in study.cfg["seeds"]:
@@ -254,8 +256,18 @@ def stage_train(study: Study) -> list[Path]:
             done = run / "done.json"
             if done.exists():
                 study.log(f"train: {group} seed {seed} done ({run}), skipped")
+                trained_on = (_read_json(done) or {}).get("n_configurations")
+                if trained_on is not None and trained_on != n_data:
+                    study.log(f"train: WARNING {run} was trained on {trained_on}"
+                              f" configurations, the data set now has {n_data}: use a new"
+                              " workdir (or delete the models) to train on the new data")
                 paths.append(run / "best.pt")
                 continue
+            if not len(split["train"]) or not len(split["val"]):
+                raise SystemExit(
+                    f"train: {study.data} has {len(split['train'])} training and"
+                    f" {len(split['val'])} validation configurations; both are needed (the"
+                    " validation molecules select the best epoch)")
             overrides = [f"data.path={study.data}", f"output.dir={run}",
                          f"augmentation.enabled={str(augmented).lower()}",
                          f"training.seed={seed}", "output.progress=false",
@@ -264,10 +276,16 @@ def stage_train(study: Study) -> list[Path]:
             t0 = time.perf_counter()
             best = train(cfg)  # resumes from last.pt when a previous run was cut off
             study.work["train"] += 1
+            if not Path(best).exists():
+                raise SystemExit(f"train: {run}: no best.pt after training (no finite"
+                                 " validation loss); see its log.csv")
             rows = list(csv.DictReader((run / "log.csv").open())) if (run / "log.csv").exists() \
                 else []
             best_row = min(rows, key=lambda r: float(r["val_loss"])) if rows else {}
             _write_json(done, {"best": str(best), "epochs": len(rows),
+                               "n_configurations": n_data,
+                               "n_train": int(len(split["train"])),
+                               "n_val": int(len(split["val"])),
                                "wall_s_this_call": time.perf_counter() - t0,
                                "best_epoch": best_row.get("epoch"),
                                "best_val": {k: float(v) for k, v in best_row.items()
@@ -809,6 +827,16 @@ def stage_md(study: Study) -> None:
                           for g, v in counts.items()) + " (stable/transition/unstable)"
         plot_conserved(runs, figure, labels=labels, groups=groups,
                        title=title)
+        # panels (b) and (c): one run of each class present (stable, transition, unstable)
+        from emlpack.md_analysis import plot_conserved_series
+
+        examples = {}
+        for r in summary["analyses"]:
+            examples.setdefault(r["classification"], r)
+        paths = [study.workdir / "md" / r["model"] / r["molecule"] for r in examples.values()]
+        plot_conserved_series(paths, study.workdir / "figure3_series.png",
+                              labels=[f"{r['model']}/{r['molecule']}"
+                                      for r in examples.values()], discard_steps=discard)
 
 
 def md_summary(study: Study) -> dict | None:
@@ -1062,7 +1090,10 @@ def markdown(result: dict, notes: str = "") -> str:
         f" test {d['by_split']['test']['configurations']} of"
         f" {d['by_split']['test']['molecules']}); {d['molecules_listed']} molecules listed;"
         f" hydride references: {'yes' if d['hydrides'] else 'no'}",
-        f"- models: {', '.join(result['models']) or 'none'}",
+        f"- models: {', '.join(result['models']) or 'none'}; best validation (held-out"
+        " molecules) core-force MAE [meV/Å]: " + ", ".join(
+            f"{n} {_val((t or {}).get('best_val', {}).get('val_forces_mae'), 1, 1000)}"
+            f" (epoch {(t or {}).get('best_epoch')})" for n, t in result["training"].items()),
         f"- DFT reference level (dft stage): `{result['dft_level']}`", ""]
     for set_name, title in (("test", "test molecules of the card"),
                             ("pbe0_subset", "the authors' six molecules (eqm7_pbe0_subset.xyz)")):
@@ -1105,7 +1136,8 @@ def markdown(result: dict, notes: str = "") -> str:
                          f" {_val(v['max_jump_max'], 5)} |")
         lines += ["", f"Paper: {PAPER['md']['noaug_unstable_pct']} % of the non-augmented runs"
                   " unstable, none of the augmented ones (the paper does not check bonding)."
-                  " Figure: `figure3_md.png` in the work directory.", ""]
+                  " Figures: `figure3_md.png` (panel a) and `figure3_series.png` (panels b, c:"
+                  " one run of each class) in the work directory.", ""]
     else:
         lines += ["*not run yet (md stage).*", ""]
     lines += ["### Targets of issue 15", "", "| target | measured | met |", "|---|---|---|"]
