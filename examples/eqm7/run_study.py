@@ -360,22 +360,6 @@ def _start_geometry(study: Study, row: dict) -> tuple[np.ndarray, np.ndarray, st
     return mol.numbers.astype(int), mol.positions.astype(float), "RDKit (MMFF)"
 
 
-def _labeler_calculator(labeler):
-    from ase.calculators.calculator import CalculationFailed, Calculator, all_changes
-
-    class _Calc(Calculator):
-        implemented_properties = ["energy", "forces"]
-
-        def calculate(self, atoms=None, properties=("energy",), system_changes=all_changes):
-            super().calculate(atoms, properties, system_changes)
-            res = labeler(self.atoms.numbers, self.atoms.positions, localize=False)
-            if not res.ok:
-                raise CalculationFailed(res.error)
-            self.results = {"energy": res.energy, "forces": res.forces}
-
-    return _Calc()
-
-
 def harmonic_ir(hessian: np.ndarray, born: np.ndarray, numbers, positions) -> dict:
     """Frequencies (cm^-1, imaginary negative) and IR intensities (km/mol) from a Cartesian
     Hessian (eV/Å²) and dipole derivatives dmu_a/dR_ib (3, 3N; e), as :mod:`emlpack.spectra`."""
@@ -397,7 +381,7 @@ def dft_molecule(study: Study, row: dict, labeler) -> dict:
     from ase import Atoms
     from ase.optimize import BFGS
 
-    from emlpack.qm.labeling import pyscf_hessian
+    from emlpack.qm.labeling import labeler_calculator, pyscf_hessian
     from emlpack.units import COULOMB_EV_A, FIELD_AU_IN_V_PER_A, POLARIZABILITY_A3_IN_BOHR3
 
     d = study.cfg.get("dft", {})
@@ -407,7 +391,7 @@ def dft_molecule(study: Study, row: dict, labeler) -> dict:
 
     def optimise():
         atoms = Atoms(numbers=numbers, positions=start)
-        atoms.calc = _labeler_calculator(labeler)
+        atoms.calc = labeler_calculator(labeler)
         opt = BFGS(atoms, logfile=None, maxstep=0.1)
         converged = opt.run(fmax=float(d.get("fmax", 0.01)), steps=int(d.get("max_steps", 100)))
         return {"positions": atoms.positions, "converged": bool(converged),

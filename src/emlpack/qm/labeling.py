@@ -110,23 +110,22 @@ def _molecule_from_atoms(atoms, name: str, source: str) -> Molecule:
 
 
 # ---------------------------------------------------------------------------------- tasks
-class _LabelerCalculator:
-    """A minimal ASE calculator (energy, forces at zero field) over :class:`PySCFLabeler`."""
+def labeler_calculator(labeler: PySCFLabeler):
+    """A minimal ASE calculator (energy, forces at zero field; no localization) over a
+    :class:`PySCFLabeler`, e.g. for ASE's optimisers."""
+    from ase.calculators.calculator import CalculationFailed, Calculator, all_changes
 
-    def __new__(cls, labeler: PySCFLabeler):
-        from ase.calculators.calculator import CalculationFailed, Calculator, all_changes
+    class _Calc(Calculator):
+        implemented_properties = ["energy", "forces"]
 
-        class _Calc(Calculator):
-            implemented_properties = ["energy", "forces"]
+        def calculate(self, atoms=None, properties=("energy",), system_changes=all_changes):
+            super().calculate(atoms, properties, system_changes)
+            res = labeler(self.atoms.numbers, self.atoms.positions, localize=False)
+            if not res.ok:
+                raise CalculationFailed(res.error)
+            self.results = {"energy": res.energy, "forces": res.forces}
 
-            def calculate(self, atoms=None, properties=("energy",), system_changes=all_changes):
-                super().calculate(atoms, properties, system_changes)
-                res = labeler(self.atoms.numbers, self.atoms.positions, localize=False)
-                if not res.ok:
-                    raise CalculationFailed(res.error)
-                self.results = {"energy": res.energy, "forces": res.forces}
-
-        return _Calc()
+    return _Calc()
 
 
 def pyscf_hessian(labeler: PySCFLabeler, numbers, positions) -> np.ndarray:
@@ -163,7 +162,7 @@ def _preparation_calculator(level: str, threads: int | None):
                 f"preparation level {level}: needs the package tblite (pip install tblite)"
             ) from exc
         return TBLite(method=XTB_LEVELS[level], verbosity=0)
-    return _LabelerCalculator(PySCFLabeler(level, threads=threads))
+    return labeler_calculator(PySCFLabeler(level, threads=threads))
 
 
 def _finite_difference_hessian(atoms, delta: float = 0.005) -> np.ndarray:
