@@ -48,7 +48,7 @@ from emlpack.data.references import (
 from emlpack.data.shards import is_sharded, read_shards
 from emlpack.nn.checkpoint import read_checkpoint, save_model
 from emlpack.nn.potential import EMLP, ModelConfig
-from emlpack.train.config import dump_config
+from emlpack.train.config import ConfigError, dump_config
 from emlpack.train.loss import TERMS, LossWeights, Metrics, combine, loss_terms, predict
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -105,8 +105,10 @@ class Trainer:
             ids = [molecule_id(s) for s in self.structures]
             by = "molecule" if d["split"] == "auto" else d["split"]
             self.split = split_indices(ids, d["fractions"], by, d["split_seed"])
-        if len(self.split["train"]) == 0:
-            raise ValueError(f"{d['path']}: the training split is empty")
+        for part, name in (("train", "training"), ("val", "validation")):
+            if len(self.split[part]) == 0:  # no validation: no best model would be saved
+                raise ConfigError(f"{d['path']}: the {name} split is empty ({d['split']}"
+                                  f" split of {len(self.structures)} structures)")
         self.reference = build_reference(cfg, self.structures, self.split["train"],
                                           store_hydrides)
         self.model_config = ModelConfig.from_dict(cfg["model"])
