@@ -334,6 +334,7 @@ def test_data_and_training_counts_are_checked_first(tmp_path, capsys, monkeypatc
     assert line == f"emlp {argv[0]}: error: {message}"
 
 
+@pytest.mark.slow  # timing-dependent: on a loaded machine the poll can miss the early steps
 def test_real_sigint_during_md_exits_130_and_the_rerun_resumes(tmp_path):
     """``emlp md`` in a subprocess, Ctrl-C (SIGINT) after a few steps: exit 130, one line
     with the resume hint, no traceback; the same command then continues the run."""
