@@ -11,14 +11,19 @@ import torch
 
 from emlpack.calculator import EMLPCalculator
 from emlpack.data.references import HydrideReference, hydride_coefficients, load_hydrides
-from emlpack.ensemble import EnsembleError, ModelEnsemble, as_ensemble, load_member
+from emlpack.ensemble import (
+    EnsembleError,
+    ModelEnsemble,
+    as_ensemble,
+    load_member,
+    load_pretrained,
+)
 from emlpack.io import read_structures, structure_to_atoms
 from emlpack.nn.checkpoint import save_model
 from emlpack.pretrained import (
     PretrainedError,
     available,
     export_pretrained,
-    load_pretrained,
     model_card,
     resolve_model,
 )

@@ -165,3 +165,12 @@ def as_ensemble(model, dtype: torch.dtype = torch.float64) -> ModelEnsemble:
             members.extend(as_ensemble(item, dtype).members)
         return ModelEnsemble(members)
     raise EnsembleError(f"cannot use {type(model).__name__} as a model")
+
+
+def load_pretrained(name: str, dtype: torch.dtype = torch.float64, root: Path | None = None):
+    """The pretrained ensemble ``name`` (see :mod:`emlpack.pretrained`) as a
+    :class:`ModelEnsemble` in ``dtype``."""
+    from emlpack.pretrained import resolve_model
+
+    files, label = resolve_model(name, root)
+    return ModelEnsemble([load_member(p, dtype) for p in files], label)

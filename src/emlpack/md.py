@@ -67,7 +67,7 @@ from emlpack.errors import EmlpackError
 from emlpack.io.extxyz import atomic_write, write_structures
 from emlpack.nn.checkpoint import load_model
 from emlpack.nn.potential import EMLP
-from emlpack.relax import _damped_bfgs, pair_hessian, relax_pairs
+from emlpack.relax import damped_bfgs, pair_hessian, relax_pairs
 from emlpack.structure import Structure
 
 __all__ = [
@@ -410,7 +410,7 @@ class BOPairCalculator(Calculator):
             if t == 1.0:
                 errors.append(_max_norm(gp_new) / max(fmax, 1e-300))
             cp = cp + np.outer(miss, sv) / max(float(sv @ sv), 1e-300)
-            h = _damped_bfgs(torch.as_tensor(h)[None], torch.as_tensor(s),
+            h = damped_bfgs(torch.as_tensor(h)[None], torch.as_tensor(s),
                              torch.as_tensor(y))[0].numpy()
             x, e, grad, gp = x_new, e_new, grad_new, gp_new
         self.hessian, self.coupling = h, cp

@@ -35,6 +35,7 @@ import numpy as np
 
 from emlpack._files import write_bytes_atomic, write_json_atomic
 from emlpack.errors import EmlpackError
+from emlpack.spectra import trajectory_file
 
 #: jump (eV per atom) below which a run is stable (paper)
 STABLE_MAX_JUMP = 5e-4
@@ -225,16 +226,6 @@ def analyze_conserved(
         drift=slope * float(t[-1] - t[0]),
         classification=classify(max_jump),
     )
-
-
-def trajectory_file(path: str | os.PathLike) -> Path:
-    """``path`` itself, or for an ``emlp md`` output directory its trajectory file."""
-    path = Path(path)
-    if path.is_dir():
-        from emlpack.md import TRAJECTORY
-
-        return path / TRAJECTORY
-    return path
 
 
 def read_conserved(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:

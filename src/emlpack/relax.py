@@ -697,7 +697,7 @@ def _relax(model, structures, opts, bounds) -> list[RelaxResult]:
                 hessian = torch.where(scale_first[:, None, None], c[:, None, None] * eye, hessian)
                 first &= ~accept
             hessian = torch.where(
-                accept[:, None, None], _damped_bfgs(hessian, s, y), hessian
+                accept[:, None, None], damped_bfgs(hessian, s, y), hessian
             )
             acc_p = accept[prob.pair_batch, None]
             x = torch.where(acc_p, x_new, x)
@@ -728,7 +728,7 @@ def _relax(model, structures, opts, bounds) -> list[RelaxResult]:
                     fmax, min_curv, opts)
 
 
-def _damped_bfgs(h: torch.Tensor, s: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+def damped_bfgs(h: torch.Tensor, s: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """Powell-damped BFGS update of Hessian models ``h`` (B, m, m) that keeps them positive
     definite; structures with a zero step keep their model."""
     hs = (h @ s[:, :, None]).squeeze(-1)

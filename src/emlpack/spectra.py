@@ -405,6 +405,16 @@ def ir_from_dipoles(
     )
 
 
+def trajectory_file(path: str | Path) -> Path:
+    """``path`` itself, or for an ``emlp md`` output directory its trajectory file."""
+    path = Path(path)
+    if path.is_dir():
+        from emlpack.md import TRAJECTORY
+
+        return path / TRAJECTORY
+    return path
+
+
 def read_dipoles(
     path: str | Path, discard_steps: int = 0
 ) -> tuple[np.ndarray, float, float]:
@@ -413,7 +423,6 @@ def read_dipoles(
     ``temperature``); frames with ``step < first step + discard_steps`` are dropped. The
     frames must be evenly spaced."""
     from emlpack.io import iread_structures
-    from emlpack.md_analysis import trajectory_file
 
     path = trajectory_file(path)
     mu, times, steps, temps = [], [], [], []

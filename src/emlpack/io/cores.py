@@ -21,7 +21,7 @@ from emlpack.structure import StructureError, core_charges, n_core_pairs
 #: default distance (Å) within which a centre counts as a core centre of a nucleus
 CORE_TOLERANCE = 0.01
 
-_SHIFTS = np.array(list(itertools.product((-1, 0, 1), repeat=3)), dtype=np.float64)
+IMAGE_SHIFTS = np.array(list(itertools.product((-1, 0, 1), repeat=3)), dtype=np.float64)
 
 
 def minimum_image_distances(
@@ -42,7 +42,7 @@ def minimum_image_distances(
     frac = diff @ np.linalg.inv(cell)
     frac -= np.round(frac)
     wrapped = frac @ cell
-    images = wrapped[:, :, None, :] + (_SHIFTS @ cell)[None, None, :, :]
+    images = wrapped[:, :, None, :] + (IMAGE_SHIFTS @ cell)[None, None, :, :]
     return np.linalg.norm(images, axis=-1).min(axis=-1)
 
 

@@ -4,7 +4,7 @@ Each model is a folder ``emlpack/pretrained/NAME/`` with ``model-K.pt`` checkpoi
 weights, the training reference and elements in their metadata) and ``card.md`` (level of
 theory, data, measured errors on unseen molecules, domain, citation)::
 
-    from emlpack.pretrained import load_pretrained
+    from emlpack import load_pretrained
     ensemble = load_pretrained("mini-eqm7")          # a ModelEnsemble
     atoms.calc = EMLPCalculator(model="mini-eqm7")   # the same, with uncertainty
 
@@ -68,14 +68,6 @@ def resolve_model(model: str | Path, root: Path | None = None) -> tuple[list[Pat
     raise PretrainedError(
         f"{name}: no such model file, folder or pretrained name (known names:"
         f" {', '.join(KNOWN)}; installed: {', '.join(available(root)) or 'none'})")
-
-
-def load_pretrained(name: str, dtype: torch.dtype = torch.float64, root: Path | None = None):
-    """The pretrained ensemble ``name`` as a :class:`emlpack.ensemble.ModelEnsemble`."""
-    from emlpack.ensemble import ModelEnsemble, load_member
-
-    files, label = resolve_model(name, root)
-    return ModelEnsemble([load_member(p, dtype) for p in files], label)
 
 
 def model_card(name: str, root: Path | None = None) -> str:

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from emlpack.io.cores import _SHIFTS
+from emlpack.io.cores import IMAGE_SHIFTS
 from emlpack.qm.pyscf_labeler import LabelingError
 from emlpack.structure import Structure, core_charges
 from emlpack.units import ANGSTROM_IN_BOHR, EV_PER_A3_IN_GPA, FIELD_AU_IN_V_PER_A, HARTREE
@@ -390,7 +390,7 @@ def map_centres_to_cores(centres: np.ndarray, positions: np.ndarray,
     diff = centres[:, None, :] - positions[None, :, :]  # (n_c, n_a, 3)
     frac = diff @ np.linalg.inv(cell)
     frac -= np.round(frac)
-    images = (frac @ cell)[:, :, None, :] + (_SHIFTS @ cell)[None, None, :, :]
+    images = (frac @ cell)[:, :, None, :] + (IMAGE_SHIFTS @ cell)[None, None, :, :]
     dist = np.linalg.norm(images, axis=-1)  # (n_c, n_a, 27)
     best_img = dist.argmin(axis=-1)
     best_dist = np.take_along_axis(dist, best_img[..., None], axis=-1)[..., 0]
