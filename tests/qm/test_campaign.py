@@ -42,6 +42,11 @@ def test_selection_rules():
         assert canon[campaign.canonical(smiles)]["split"] == "test"
     counts = {k: sum(1 for m in mols if m["split"] == k) for k in ("train", "val", "test")}
     assert counts["test"] == round(0.05 * len(mols)) and counts["val"] == round(0.05 * len(mols))
+    order = campaign.labeling_order(mols)  # held-out small molecules first, nothing lost
+    assert sorted(m["name"] for m in order) == sorted(names)
+    n_held = sum(1 for m in mols[:n_small] if m["split"] != "train")
+    assert n_held > 0 and all(m["split"] != "train" and m["n_heavy"] <= 5 for m in order[:n_held])
+    assert [m["name"] for m in order[n_small:]] == names[n_small:]
     other = campaign.select_molecules(path, seed=1, n_large=40)
     assert [m["name"] for m in other] != names  # the seed draws another sample
 
