@@ -174,3 +174,32 @@ def load_pretrained(name: str, dtype: torch.dtype = torch.float64, root: Path | 
 
     files, label = resolve_model(name, root)
     return ModelEnsemble([load_member(p, dtype) for p in files], label)
+
+
+# ------------------------------------------------------------------ statistics over members
+def member_mean(objects: Sequence):
+    """The field-wise mean of dataclass results of the members (arrays and floats averaged,
+    ``None`` kept), an object of the same type: e.g. the ensemble's polarizability tensor."""
+    import dataclasses
+
+    first = objects[0]
+    values = {}
+    for f in dataclasses.fields(first):
+        items = [getattr(o, f.name) for o in objects]
+        values[f.name] = None if items[0] is None else np.mean(np.asarray(items, float), axis=0)
+        if isinstance(items[0], float):
+            values[f.name] = float(values[f.name])
+    return type(first)(**values)
+
+
+def member_spread(records: Sequence[dict]) -> dict:
+    """``KEY_std``: the standard deviation across members (as ``EMLPCalculator``'s
+    ``*_std``) of every numeric entry of the members' result dicts that has one shape in all."""
+    out = {}
+    for key in records[0]:
+        try:
+            values = np.asarray([r[key] for r in records], dtype=float)
+        except (KeyError, TypeError, ValueError):
+            continue  # text, None, ragged or missing in a member: no spread
+        out[f"{key}_std"] = np.std(values, axis=0).tolist()
+    return out

@@ -182,34 +182,50 @@ def _looks_like_text(path: Path) -> bool:
     return b"\x00" not in chunk
 
 
-def load_member(name_or_path: str):
-    """The one place that turns a MODEL argument (a checkpoint file, a folder holding one, or
-    a pretrained name) into an :class:`emlpack.ensemble.ModelMember` in float64 (model,
-    training reference for the DFT energy scale, training elements), after the file check."""
-    from emlpack.ensemble import load_member as _load
-    from emlpack.nn.checkpoint import CheckpointError
+def model_files(name_or_path: str) -> tuple[list[Path], str]:
+    """The checkpoint files of a MODEL argument (a checkpoint file, a folder holding one or
+    more, or a pretrained name) and a label for messages; each file is checked cheaply."""
     from emlpack.pretrained import resolve_model
 
     given = Path(name_or_path)
     is_name = not given.exists() and not given.suffix and os.sep not in str(name_or_path)
-    path = given
     if is_name or (given.is_dir() and any(given.glob("*.pt"))):
         files, label = resolve_model(name_or_path)
-        if len(files) > 1:
-            raise InputError(
-                f"{label}: an ensemble of {len(files)} models; the command-line properties"
-                f" evaluate one model for now: pass one of its files (e.g. {files[0]}), or use"
-                f" EMLPCalculator(model={str(name_or_path)!r}) in Python for the ensemble mean"
-                " and spread")
-        path = files[0]
-    path = check_model_file(path)
-    try:
-        return _load(path)
-    except CheckpointError as exc:
-        if "weights_only" in str(exc) or "Unpickl" in str(exc):  # never advise unsafe loading
-            raise ModelFileError(f"{path}: not an emlpack model (a PyTorch file holding pickled"
-                                 " objects; emlpack reads weights only)") from exc
-        raise
+    else:
+        files, label = [given], str(given)
+    return [check_model_file(f) for f in files], label
+
+
+def load_members(name_or_path: str) -> list:
+    """Every :class:`emlpack.ensemble.ModelMember` (float64) of a MODEL argument: one for a
+    checkpoint, all of them for an ensemble folder or a pretrained name."""
+    from emlpack.ensemble import load_member as _load
+    from emlpack.nn.checkpoint import CheckpointError
+
+    files, _ = model_files(name_or_path)
+    members = []
+    for path in files:
+        try:
+            members.append(_load(path))
+        except CheckpointError as exc:
+            if "weights_only" in str(exc) or "Unpickl" in str(exc):  # never advise unsafe loading
+                raise ModelFileError(f"{path}: not an emlpack model (a PyTorch file holding"
+                                     " pickled objects; emlpack reads weights only)") from exc
+            raise
+    return members
+
+
+def load_member(name_or_path: str, command: str = "this command"):
+    """The one :class:`emlpack.ensemble.ModelMember` of a MODEL argument, for the commands
+    that evaluate a single model (an ensemble is refused with one line)."""
+    files, label = model_files(name_or_path)
+    if len(files) > 1:
+        raise InputError(
+            f"{label}: an ensemble of {len(files)} models; {command} evaluates one model: pass"
+            f" one of its files (e.g. {files[0]}); emlp optimize, ir, polarizability and"
+            f" response take ensembles, and EMLPCalculator(model={str(name_or_path)!r}) gives"
+            " the ensemble mean and spread in Python")
+    return load_members(str(files[0]))[0]
 
 
 def load_model(name_or_path: str):

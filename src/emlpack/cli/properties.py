@@ -6,6 +6,7 @@ failed pair relaxation) is printed as a warning, recorded in the JSON output
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -21,7 +22,7 @@ from emlpack.cli.common import (
     add_threads_argument,
     apply_field,
     energy_record,
-    load_member,
+    load_members,
     positive,
     read_structure,
     set_threads,
@@ -30,6 +31,8 @@ from emlpack.cli.common import (
 )
 
 RELAX_LEVELS = ("none", "pairs", "positions", "cell")
+#: warn when the ensemble's isotropic polarizability spread exceeds this fraction of its mean
+POLARIZABILITY_SPREAD_WARNING = 0.1
 
 
 def _common(p, relax_default: str, output_default: str, output_help: str) -> None:
@@ -50,22 +53,71 @@ def _common(p, relax_default: str, output_default: str, output_help: str) -> Non
 
 
 class Prepared:
-    """The checked, relaxed input of a property command and what was noticed on the way."""
+    """The checked, relaxed input of a property command and what was noticed on the way.
 
-    def __init__(self, member, structure, where, field_info, warnings, relax_info, log):
-        self.member, self.model = member, member.model
-        self.structure, self.where = structure, where
-        self.field_info, self.warnings, self.relax_info, self.log = (
-            field_info, warnings, relax_info, log)
+    With an ensemble (a folder of checkpoints or a pretrained name) every member relaxes its
+    own pairs (and positions, cell) from the same input: ``structures[k]`` belongs to
+    ``members[k]``; the commands report the members' mean and their spread (``*_std``).
+    """
+
+    def __init__(self, members, structures, where, field_info, warnings, relax_infos, log):
+        self.members, self.structures = list(members), list(structures)
+        self.where, self.field_info, self.warnings = where, field_info, warnings
+        self.relax_infos, self.log = relax_infos, log
+
+    @property
+    def ensemble(self) -> bool:
+        return len(self.members) > 1
+
+    @property
+    def member(self):
+        return self.members[0]
+
+    @property
+    def model(self):
+        return self.members[0].model
+
+    @property
+    def structure(self):
+        return self.structures[0]
+
+    def each(self):
+        """``(index, member, structure)`` for every member."""
+        return zip(range(len(self.members)), self.members, self.structures, strict=True)
 
     def record(self, args, data: dict) -> dict:
-        """``data`` with the field, relaxation, warnings and settings added."""
+        """``data`` with the field, relaxation, warnings, ensemble and settings added."""
         out = dict(data)
         out["structure"] = self.where
         out.update(self.field_info)
-        out["relaxation"] = self.relax_info
+        out["relaxation"] = self.relax_infos[0] if not self.ensemble else self.relax_infos
+        if self.ensemble:
+            out["ensemble"] = {"size": len(self.members),
+                               "members": [m.source for m in self.members]}
         out["warnings"] = list(self.warnings)
         out["settings"] = settings(args)
+        return out
+
+    def energies(self) -> dict:
+        """Energy record (DFT scale when known) of the members at their structures, with the
+        ensemble's mean, ``energy_eV_std`` and a warning when the spread is large."""
+        from emlpack.calculator import ENERGY_SPREAD_WARNING
+        from emlpack.ensemble import member_spread
+
+        records = [energy_record(m, s, m.model.evaluate(s)["energy"])
+                   for _, m, s in self.each()]
+        if not self.ensemble:
+            return records[0]
+        out = dict(records[0])
+        for key, value in records[0].items():
+            if isinstance(value, float):
+                out[key] = float(np.mean([r[key] for r in records]))
+        out.update(member_spread(records))
+        per_atom = out["energy_eV_std"] / len(self.structure.numbers)
+        if per_atom > ENERGY_SPREAD_WARNING:
+            self.warnings.append(f"ensemble energy spread {per_atom:.3f} eV/atom exceeds"
+                                 f" {ENERGY_SPREAD_WARNING} eV/atom: outside the models'"
+                                 " domain?")
         return out
 
     def summary(self) -> str:
@@ -74,28 +126,38 @@ class Prepared:
         for w in self.warnings:
             self.log(f"warning: {w}")
         what = "done"
-        if "optimisation" in self.relax_info:
-            what = "converged" if self.relax_info["optimisation"]["converged"] else "not converged"
-        elif "pairs" in self.relax_info:
-            what = "not converged" if self.relax_info["pairs"]["failed"] else "converged"
+        infos = self.relax_infos
+        if any("optimisation" in i for i in infos):
+            ok = all(i["optimisation"]["converged"] for i in infos)
+            what = "converged" if ok else "not converged"
+        elif any("pairs" in i for i in infos):
+            what = "not converged" if any(i["pairs"]["failed"] for i in infos) else "converged"
         if self.warnings:
             return f"{what} with warnings ({len(self.warnings)})"
         return what
 
 
 def prepare(args, periodic: bool | None, command: str) -> Prepared:
-    """Cheap checks (arguments, model file, structure, field), then pair guess and relaxation."""
+    """Cheap checks (arguments, model files, structure, field), then pair guess and relaxation
+    (by every member of an ensemble)."""
     log = Log(args.quiet)
     positive(args.fmax, "--fmax")
     positive(args.max_iterations, "--max-iterations")
     set_threads(args.threads)
-    member = load_member(args.model)
-    model = member.model
-    s, where = read_structure(args, model, log, periodic=periodic, command=command)
+    members = load_members(args.model)
+    s, where = read_structure(args, members[0].model, log, periodic=periodic, command=command)
     s, field_info = apply_field(s, args, where, log)
     warnings: list[str] = []
-    s, relax_info = relax(model, s, args.relax, args, log, warnings)
-    return Prepared(member, s, where, field_info, warnings, relax_info, log)
+    structures, infos = [], []
+    for k, member in enumerate(members):
+        if len(members) > 1:
+            log.progress(f"model {k + 1} of {len(members)} ({member.source}):")
+        notes: list[str] = []
+        relaxed, info = relax(member.model, s, args.relax, args, log, notes)
+        structures.append(relaxed)
+        infos.append(info)
+        warnings += [f"model {k + 1}: {w}" if len(members) > 1 else w for w in notes]
+    return Prepared(members, structures, where, field_info, warnings, infos, log)
 
 
 def relax(model, s, level: str, args, log: Log, warnings: list[str]):
@@ -170,25 +232,39 @@ def add_optimize(sub) -> None:
         from emlpack.io import split_pairs, structure_to_atoms, write_structures
 
         prep = prepare(args, None, "emlp optimize")
-        s = prep.structure
-        energy = prep.model.evaluate(s)
         out = Path(args.output)
         if args.no_pairs:
-            atoms = split_pairs(structure_to_atoms(s))
-            atoms.info.pop("electron_pairs", None)
-            ase.io.write(out, atoms, format="extxyz")
+            frames = []
+            for s in prep.structures:
+                atoms = split_pairs(structure_to_atoms(s))
+                atoms.info.pop("electron_pairs", None)
+                frames.append(atoms)
+            ase.io.write(out, frames, format="extxyz")
         else:
-            write_structures(out, [s])
-        data = prep.record(args, {
-            **energy_record(prep.member, s, energy["energy"]),
-            "numbers": s.numbers.tolist(), "positions_A": s.positions.tolist(),
-            "pairs_A": s.pairs.tolist(),
-        })
-        if s.pbc:
-            data["cell_A"] = s.cell.tolist()
+            write_structures(out, prep.structures)  # with an ensemble: one frame per member
+        data = {**prep.energies(), "numbers": prep.structure.numbers.tolist()}
+        if prep.ensemble:
+            positions = np.array([s.positions for s in prep.structures])
+            spread = np.linalg.norm(positions - positions.mean(axis=0), axis=-1)
+            data["positions_A"] = positions.mean(axis=0).tolist()
+            data["max_position_deviation_A"] = float(spread.max())
+            data["members"] = [{"source": m.source, "positions_A": s.positions.tolist(),
+                                "pairs_A": s.pairs.tolist(),
+                                **({"cell_A": s.cell.tolist()} if s.pbc else {})}
+                               for _, m, s in prep.each()]
+            prep.log(f"{len(prep.members)} models: energy {data['energy_eV']:.6f} ±"
+                     f" {data['energy_eV_std']:.6f} eV; largest deviation of an atom from"
+                     f" the mean geometry {data['max_position_deviation_A']:.3f} Å")
+        else:
+            s = prep.structure
+            data.update({"positions_A": s.positions.tolist(), "pairs_A": s.pairs.tolist()})
+            if s.pbc:
+                data["cell_A"] = s.cell.tolist()
+        data = prep.record(args, data)
         json_path = out.with_suffix(".json")
         write_json(json_path, data)
-        prep.log(f"wrote {out} and {json_path}")
+        prep.log(f"wrote {out} and {json_path}"
+                 + (" (one frame per model)" if prep.ensemble else ""))
         prep.log(prep.summary())
         return 0
 
@@ -206,6 +282,7 @@ def add_ir(sub) -> None:
     def run(args):
         import json
 
+        from emlpack.ensemble import member_spread
         from emlpack.spectra import ir_spectrum, write_ir
 
         positive(args.fwhm, "--fwhm")
@@ -215,16 +292,41 @@ def add_ir(sub) -> None:
         prep = prepare(args, False, "emlp ir")
         t0 = time.perf_counter()
         prep.log.progress("extended Hessian and normal modes ...")
-        spec = ir_spectrum(prep.model, prep.structure)
-        prep.log(spec.text())
+        spectra = [ir_spectrum(m.model, s) for _, m, s in prep.each()]
+        spec = spectra[0]
+        if prep.ensemble:  # the mean spectrum: every member's lines with 1/N of the intensity
+            n = len(spectra)
+            spec = dataclasses.replace(
+                spec, frequencies=np.concatenate([x.frequencies for x in spectra]),
+                intensities=np.concatenate([x.intensities for x in spectra]) / n)
+            for k, x in enumerate(spectra):
+                prep.log(f"model {k + 1} ({prep.members[k].source}):")
+                prep.log(x.text())
+        else:
+            prep.log(spec.text())
         prep.log(f"(IR spectrum: {time.perf_counter() - t0:.2f} s)")
-        n_imag = int(np.sum(spec.frequencies < 0))
-        if n_imag:
-            prep.warnings.append(f"{n_imag} imaginary mode(s) (lowest"
-                                 f" {spec.frequencies.min():.1f} cm^-1): not a minimum")
+        for k, x in enumerate(spectra):
+            n_imag = int(np.sum(x.frequencies < 0))
+            if n_imag:
+                who = f"model {k + 1}: " if prep.ensemble else ""
+                prep.warnings.append(f"{who}{n_imag} imaginary mode(s) (lowest"
+                                     f" {x.frequencies.min():.1f} cm^-1): not a minimum")
         write_ir(spec, args.output, args.plot, fwhm=args.fwhm, reference=ref,
-                 title=prep.where)
-        data = prep.record(args, json.loads(Path(args.output).read_text()))
+                 title=prep.where + (f" ({len(spectra)}-model mean)" if prep.ensemble else ""))
+        data = json.loads(Path(args.output).read_text())
+        if prep.ensemble:  # modes by rank (ascending wavenumber), mean and spread
+            modes = [{"frequencies_cm-1": x.frequencies.tolist(),
+                      "intensities_km_per_mol": x.intensities.tolist()} for x in spectra]
+            mean = {k: np.mean([m[k] for m in modes], axis=0).tolist() for k in modes[0]}
+            data.update(mean)
+            data.update(member_spread(modes))
+            data["members"] = [{"source": m.source, **x} for m, x in
+                               zip(prep.members, modes, strict=True)]
+            data["spectrum"] = f"mean of the {len(spectra)} models' broadened spectra"
+            std = np.asarray(data["frequencies_cm-1_std"])
+            prep.log(f"ensemble: wavenumber spread (std) median {np.median(std):.1f}, largest"
+                     f" {std.max():.1f} cm^-1")
+        data = prep.record(args, {**prep.energies(), **data})
         write_json(args.output, data)
         prep.log(f"wrote {args.output}" + (f" and {args.plot}" if args.plot else ""))
         prep.log(prep.summary())
@@ -256,22 +358,39 @@ def add_polarizability(sub) -> None:
     _common(p, "pairs", "polarizability.json", "JSON file of the dipole and polarizabilities")
 
     def run(args):
+        from emlpack.ensemble import member_mean, member_spread
         from emlpack.response import molecule_response
         from emlpack.units import COULOMB_EV_A, POLARIZABILITY_A3_IN_BOHR3
 
         prep = prepare(args, False, "emlp polarizability")
         t0 = time.perf_counter()
         prep.log.progress("extended Hessian and Schur complements ...")
-        resp = molecule_response(prep.model, prep.structure, relax_cores=True)
+        members = [molecule_response(m.model, s, relax_cores=True) for _, m, s in prep.each()]
+        resp = member_mean(members) if prep.ensemble else members[0]
         prep.log(resp.text())
+        data = resp.as_dict()
+        if prep.ensemble:
+            data.update(member_spread([r.as_dict() for r in members]))
+            iso, iso_std = (data["polarizability_isotropic_bohr3"],
+                            data["polarizability_isotropic_bohr3_std"])
+            prep.log(f"ensemble of {len(members)}: |mu| {data['dipole_norm_debye']:.4f} ±"
+                     f" {data['dipole_norm_debye_std']:.4f} D, isotropic polarizability"
+                     f" {iso:.4f} ± {iso_std:.4f} bohr^3")
+            if iso_std > POLARIZABILITY_SPREAD_WARNING * abs(iso):
+                prep.warnings.append(
+                    f"ensemble polarizability spread {iso_std:.3g} bohr^3 is more than"
+                    f" {POLARIZABILITY_SPREAD_WARNING:.0%} of its mean: outside the models'"
+                    " domain?")
         prep.log(f"(extended Hessian and Schur complements: {time.perf_counter() - t0:.2f} s)")
-        low = float(np.linalg.eigvalsh(0.5 * (resp.polarizability + resp.polarizability.T))[0])
-        if low < 0:
-            prep.warnings.append(
-                f"negative polarizability eigenvalue"
-                f" {low * COULOMB_EV_A * POLARIZABILITY_A3_IN_BOHR3:.3g} bohr^3 (pairs not at"
-                " a minimum?)")
-        write_json(args.output, prep.record(args, resp.as_dict()))
+        for k, r in enumerate(members):
+            low = float(np.linalg.eigvalsh(0.5 * (r.polarizability + r.polarizability.T))[0])
+            if low < 0:
+                who = f"model {k + 1}: " if prep.ensemble else ""
+                prep.warnings.append(
+                    f"{who}negative polarizability eigenvalue"
+                    f" {low * COULOMB_EV_A * POLARIZABILITY_A3_IN_BOHR3:.3g} bohr^3 (pairs not"
+                    " at a minimum?)")
+        write_json(args.output, prep.record(args, {**prep.energies(), **data}))
         prep.log(f"wrote {args.output}")
         prep.log(prep.summary())
         return 0
@@ -285,21 +404,31 @@ def add_response(sub) -> None:
     _common(p, "positions", "response.json", "JSON file of the tensors")
 
     def run(args):
+        from emlpack.ensemble import member_mean, member_spread
         from emlpack.response import crystal_response
 
         prep = prepare(args, True, "emlp response")
         t0 = time.perf_counter()
         prep.log.progress("extended Hessian and all tensors ...")
-        resp = crystal_response(prep.model, prep.structure)
+        members = [crystal_response(m.model, s) for _, m, s in prep.each()]
+        resp = member_mean(members) if prep.ensemble else members[0]
         prep.log(resp.text())
+        data = resp.as_dict()
+        if prep.ensemble:
+            data.update(member_spread([r.as_dict() for r in members]))
+            prep.log(f"(mean of {len(members)} models; the spread of every tensor is in the"
+                     " JSON output as KEY_std)")
         prep.log(f"(extended Hessian and all tensors: {time.perf_counter() - t0:.2f} s)")
-        low = float(np.linalg.eigvalsh(resp.stiffness_voigt)[0])
-        if low < 0:
-            from emlpack.units import EV_PER_A3_IN_GPA
+        for k, r in enumerate(members):
+            low = float(np.linalg.eigvalsh(r.stiffness_voigt)[0])
+            if low < 0:
+                from emlpack.units import EV_PER_A3_IN_GPA
 
-            prep.warnings.append(f"negative stiffness eigenvalue {low * EV_PER_A3_IN_GPA:.3g}"
-                                 " GPa: the crystal is not mechanically stable")
-        write_json(args.output, prep.record(args, resp.as_dict()))
+                who = f"model {k + 1}: " if prep.ensemble else ""
+                prep.warnings.append(f"{who}negative stiffness eigenvalue"
+                                     f" {low * EV_PER_A3_IN_GPA:.3g} GPa: the crystal is not"
+                                     " mechanically stable")
+        write_json(args.output, prep.record(args, {**prep.energies(), **data}))
         prep.log(f"wrote {args.output}")
         prep.log(prep.summary())
         return 0
