@@ -405,12 +405,30 @@ def dft_molecule(study: Study, row: dict, labeler) -> dict:
     t0 = time.perf_counter()
 
     def optimise():
+        # resumable step by step: a killed run restarts from the trajectory's last frame and
+        # BFGS's saved Hessian (dot files: working state, never committed)
+        from ase.io import Trajectory
+
+        cache.mkdir(parents=True, exist_ok=True)
+        traj, restart = cache / ".opt.traj", cache / ".bfgs.json"
         atoms = Atoms(numbers=numbers, positions=start)
+        done = 0
+        if traj.exists():
+            try:
+                with Trajectory(traj) as frames:
+                    done = len(frames)
+                    atoms.positions = frames[-1].positions
+            except Exception:  # noqa: BLE001 - a frame cut by a kill: start again
+                traj.unlink()
+                restart.unlink(missing_ok=True)
+                done = 0
         atoms.calc = labeler_calculator(labeler)
-        opt = BFGS(atoms, logfile=None, maxstep=0.1)
-        converged = opt.run(fmax=float(d.get("fmax", 0.01)), steps=int(d.get("max_steps", 100)))
+        opt = BFGS(atoms, logfile=None, maxstep=0.1, restart=str(restart),
+                   trajectory=str(traj), append_trajectory=True)
+        converged = opt.run(fmax=float(d.get("fmax", 0.01)),
+                            steps=max(0, int(d.get("max_steps", 100)) - done))
         return {"positions": atoms.positions, "converged": bool(converged),
-                "steps": opt.get_number_of_steps(),
+                "steps": done + opt.get_number_of_steps(),
                 "max_force": np.abs(atoms.get_forces()).max()}
 
     opt = _cached(cache / "opt.npz", optimise)
