@@ -120,6 +120,32 @@ def test_campaign_resumes_from_shards_on_a_fresh_machine(tmp_path, monkeypatch):
     assert "8 configurations of 2 molecules (2 complete)" in card
 
 
+def test_sigterm_turns_finished_labels_into_a_shard(tmp_path, monkeypatch):
+    """``kill PID`` (the end of a session) stops the run like Ctrl-C, and the labels finished
+    so far become a shard before it exits."""
+    import os
+    import signal
+
+    from emlpack.qm import labeling
+
+    folder = _tiny_campaign(tmp_path / "c")
+    calls = {"n": 0}
+    real = labeling.label_task
+
+    def label_then_terminate(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 3:  # two labels are finished and stored by now
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(labeling, "label_task", label_then_terminate)
+    previous = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(KeyboardInterrupt):
+        campaign.run_campaign(folder, workers=0, progress=False)
+    assert signal.getsignal(signal.SIGTERM) == previous  # the handler is restored
+    assert len(shard_paths(folder)) == 1 and len(finished_keys(folder)) == 2
+
+
 def test_labels_are_interleaved_with_preparation(tmp_path):
     """The first label is stored before the second molecule is prepared."""
     from emlpack.qm.labeling import run_labeling

@@ -17,12 +17,15 @@ split, every molecule with 2-5 heavy atoms comes first, then a seeded sample of 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import logging
 import os
+import signal
 import socket
 import subprocess
+import threading
 import time
 from pathlib import Path
 
@@ -303,13 +306,30 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
         return over
 
     sources = [(m["name"], m["smiles"]) for m in labeling_order(molecules)]
-    summary = run_labeling(sources, work, recipe, workers=workers, progress=progress,
-                           threads=threads, prep_dir=folder / "prepared", exclude_keys=done,
-                           on_stored=on_stored)
-    with DatasetStore(work, "a") as store:
-        flush(store)
+    with _terminate_as_interrupt():
+        try:
+            summary = run_labeling(sources, work, recipe, workers=workers, progress=progress,
+                                   threads=threads, prep_dir=folder / "prepared",
+                                   exclude_keys=done, on_stored=on_stored)
+        finally:  # also on Ctrl-C or SIGTERM: the finished labels become a last shard
+            with DatasetStore(work, "a") as store:
+                flush(store)
     return {"new_records": summary.n_new, "new_failures": summary.n_failed_new,
             "shards": [str(p) for p in state["shards"]], "wall_s": time.time() - t0}
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt():
+    """Within the block, SIGTERM (e.g. ``kill PID`` at the end of a session) raises
+    KeyboardInterrupt as Ctrl-C does, so the run stops through its ``finally`` clauses."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 # ---------------------------------------------------------------------------------- card
