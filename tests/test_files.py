@@ -30,3 +30,27 @@ def test_writers_that_want_a_file_name(tmp_path):
     write_text_atomic(target.with_suffix(".txt"), "é\n")
     assert target.with_suffix(".txt").read_text() == "é\n"
     assert sorted(p.name for p in target.parent.iterdir()) == ["arrays.npz", "arrays.txt"]
+
+
+def test_handle_writers_npz_and_kept_permissions(tmp_path):
+    from emlpack._files import atomic_write, write_npz_atomic
+
+    target = tmp_path / "rows.csv"
+    atomic_write(target, lambda fh: fh.write("a,b\r\n1,2\n"))
+    assert target.read_bytes() == b"a,b\r\n1,2\n"  # no newline translation
+    target.chmod(0o600)
+    atomic_write(target, lambda fh: fh.write("x"))
+    assert target.stat().st_mode & 0o777 == 0o600  # the replaced file's permissions are kept
+
+    def fail(fh):
+        fh.write("partial")
+        raise ValueError("bad row")
+
+    with pytest.raises(ValueError):
+        atomic_write(target, fail)
+    assert target.read_text() == "x"
+    write_npz_atomic(tmp_path / "a.npz", compressed=True, x=np.arange(4), s="text")
+    with np.load(tmp_path / "a.npz") as d:
+        np.testing.assert_array_equal(d["x"], np.arange(4))
+        assert str(d["s"]) == "text"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npz", "rows.csv"]

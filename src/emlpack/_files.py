@@ -1,7 +1,17 @@
 """Atomic file writes: a temporary file beside the target, then a rename (one home).
 
 An interrupted write (a killed process, a full disk) leaves the previous file or none, never a
-truncated one. Used by every writer of the package (checkpoints, stores, shards, JSON, plots).
+truncated one. Every writer of the package goes through here (checkpoints, stores, shards,
+extended XYZ, JSON, NPZ, plots):
+
+* :func:`atomic_path` yields a temporary *path* for writers that want a file name
+  (``torch.save``, ``np.savez``, h5py, ``shutil.copyfile``);
+* :func:`atomic_write` calls ``write(handle)`` on an open text or binary handle;
+* :func:`write_bytes_atomic`, :func:`write_text_atomic`, :func:`write_json_atomic` and
+  :func:`write_npz_atomic` write one value.
+
+The file keeps the permissions of the file it replaces (a new one gets the umask's default),
+and a temporary file is never left behind.
 """
 
 from __future__ import annotations
@@ -10,8 +20,20 @@ import contextlib
 import json
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+__all__ = [
+    "atomic_path",
+    "atomic_write",
+    "write_bytes_atomic",
+    "write_json_atomic",
+    "write_npz_atomic",
+    "write_text_atomic",
+]
 
 
 @contextlib.contextmanager
@@ -19,28 +41,40 @@ def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]
     """Yield a temporary path beside ``path``; on success it is renamed onto ``path``.
 
     For writers that want a file name (``torch.save``, ``np.savez``, h5py, ASE). ``suffix``
-    keeps an extension that a writer needs (e.g. ``".npz"``). The parent folder is created.
+    keeps an extension that a writer needs (e.g. ``".npz"``). The parent folder is created; the
+    temporary path does not exist yet (the writer creates it: h5py refuses an empty file). On an
+    exception the temporary file is removed and ``path`` is left as it was.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
     os.close(fd)
-    os.unlink(tmp)  # a unique name; the writer creates the file (h5py refuses an empty one)
+    os.unlink(tmp)  # a unique name; the writer creates the file
     try:
         yield Path(tmp)
-        os.chmod(tmp, 0o644)
+        os.chmod(tmp, _file_mode(path))
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
 
 
+def atomic_write(
+    path: str | os.PathLike, write: Callable[[IO], Any], binary: bool = False
+) -> None:
+    """Call ``write(handle)`` on a temporary file beside ``path`` (text, UTF-8, unless
+    ``binary``), flush it to disk, then rename it onto ``path``."""
+    with atomic_path(path) as tmp:
+        text = {} if binary else {"encoding": "utf-8", "newline": ""}  # no newline translation
+        with open(tmp, "xb" if binary else "x", **text) as fh:
+            write(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+
+
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically (flushed to disk before the rename)."""
-    with atomic_path(path) as tmp, open(tmp, "xb") as handle:
-        handle.write(data)
-        handle.flush()
-        os.fsync(handle.fileno())
+    atomic_write(path, lambda fh: fh.write(data), binary=True)
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
@@ -48,6 +82,23 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     write_bytes_atomic(path, text.encode())
 
 
-def write_json_atomic(path: str | os.PathLike, data) -> None:
-    """JSON (indent 1, trailing newline) written atomically."""
-    write_bytes_atomic(path, (json.dumps(data, indent=1) + "\n").encode())
+def write_json_atomic(path: str | os.PathLike, data: Any, default=None) -> None:
+    """JSON (indent 1, trailing newline) written atomically; ``default`` as in
+    :func:`json.dumps` (for values JSON does not know)."""
+    write_text_atomic(path, json.dumps(data, indent=1, default=default) + "\n")
+
+
+def write_npz_atomic(path: str | os.PathLike, compressed: bool = False, **arrays) -> None:
+    """Write ``arrays`` as an ``.npz`` archive atomically (``np.savez``, or
+    ``np.savez_compressed`` when ``compressed``), flushed to disk before the rename."""
+    save = np.savez_compressed if compressed else np.savez
+    atomic_write(path, lambda fh: save(fh, **arrays), binary=True)
+
+
+def _file_mode(path: Path) -> int:
+    """The permissions of the file being replaced, or a new file's default under the umask."""
+    if path.exists():
+        return path.stat().st_mode & 0o777
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask

@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 from ase.build import molecule
 
+from emlpack._files import write_text_atomic
+
 MOLECULES = ("H2O", "NH3", "CH4")
 HYDRIDE_NAMES = ("H2", "CH4", "NH3", "H2O")
 DEMO_LEVEL = "quick"
@@ -165,7 +167,7 @@ def write_report(out: Path, times: dict, table: str, dipoles: list[dict],
     lines += ["", "A demo-sized model on a few dozen configurations: the numbers show the"
               " pipeline and its trends, not the paper's accuracy."]
     path = out / "report.md"
-    path.write_text("\n".join(lines) + "\n")
+    write_text_atomic(path, "\n".join(lines) + "\n")
     return path
 
 

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from emlpack._files import atomic_path
 from emlpack.errors import EmlpackError
 from emlpack.structure import Structure
 
@@ -89,11 +90,8 @@ class DatasetStore:
         import h5py
 
         if self.mode == "a" and not self.path.exists():
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
-            with h5py.File(tmp, "w") as f:
+            with atomic_path(self.path) as tmp, h5py.File(tmp, "w") as f:
                 _create_layout(f, chunk_scale=1 / 16 if self._compact else 1.0)
-            os.replace(tmp, self.path)
         try:
             if self.mode == "a":
                 self._lock_writer()

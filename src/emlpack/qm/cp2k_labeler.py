@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from emlpack._files import atomic_path
 from emlpack.io.cores import IMAGE_SHIFTS
 from emlpack.qm.pyscf_labeler import LabelingError
 from emlpack.structure import Structure, core_charges
@@ -493,8 +494,8 @@ class CP2KLabeler:
             self._wfn_dir = Path(tempfile.mkdtemp(prefix="cp2k-wfn-", dir=self.workdir))
             weakref.finalize(self, shutil.rmtree, str(self._wfn_dir), True)
         target = self._wfn.get(composition) or self._wfn_dir / f"{len(self._wfn)}.wfn"
-        shutil.copyfile(wfn, target.with_suffix(".tmp"))
-        os.replace(target.with_suffix(".tmp"), target)
+        with atomic_path(target) as tmp:
+            shutil.copyfile(wfn, tmp)
         self._wfn[composition] = target
 
     def command(self) -> list[str]:

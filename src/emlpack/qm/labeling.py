@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from emlpack._files import atomic_path
+from emlpack._files import write_npz_atomic
 from emlpack.data.store import DatasetStore, StoreError
 from emlpack.qm.executor import Executor
 from emlpack.qm.levels import parse_level
@@ -251,10 +251,9 @@ def _save_prepared(prep_dir: Path, mol: Molecule, level: str) -> None:
     final = prep_dir / f"{mol.name}.npz"
     if final.exists():
         return
-    with atomic_path(final, suffix=".npz") as tmp:
-        np.savez_compressed(tmp, numbers=mol.numbers, positions=mol.positions, bonds=mol.bonds,
-                            ring_bonds=mol.ring_bonds, hessian=mol.hessian, smiles=mol.smiles,
-                            level=level)
+    write_npz_atomic(final, compressed=True, numbers=mol.numbers, positions=mol.positions,
+                     bonds=mol.bonds, ring_bonds=mol.ring_bonds, hessian=mol.hessian,
+                     smiles=mol.smiles, level=level)
 
 
 def _load_prepared(prep_dir: Path, name: str, level: str) -> Molecule | None:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import yaml
 
+from emlpack._files import write_text_atomic
 from emlpack.data.augment import AugmentationConfig
 from emlpack.errors import EmlpackError
 from emlpack.nn.potential import ModelConfig
@@ -124,4 +125,4 @@ def validate(cfg: dict) -> None:
 
 
 def dump_config(cfg: dict, path: str | Path) -> None:
-    Path(path).write_text(yaml.safe_dump(cfg, sort_keys=False))
+    write_text_atomic(path, yaml.safe_dump(cfg, sort_keys=False))

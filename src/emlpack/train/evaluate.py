@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from emlpack._files import atomic_write, write_text_atomic
 from emlpack.data.dataset import make_batch
 from emlpack.data.references import reference_from_metadata
 from emlpack.nn.checkpoint import load_model, read_checkpoint
@@ -225,7 +226,7 @@ def parity_plots(arrays: dict, path: str | Path, title: str = "") -> Path:
         fig.suptitle(title)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=110), binary=True)
     plt.close(fig)
     return path
 
@@ -265,6 +266,6 @@ def evaluate_models(model_paths, data_path, output, subset: str = "test",
             parity_plots(arrays, output / "parity.png", f"{Path(path).name}: {subset} set")
     table = markdown_table(results, f"{', '.join(str(p) for p in model_paths)} on {data_path}"
                                     f" ({subset})")
-    (output / "evaluation.md").write_text(table)
-    (output / "evaluation.json").write_text(json.dumps(results, indent=2))
+    write_text_atomic(output / "evaluation.md", table)
+    write_text_atomic(output / "evaluation.json", json.dumps(results, indent=2))
     return table, {"models": results}

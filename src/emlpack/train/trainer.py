@@ -37,6 +37,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
+from emlpack._files import atomic_write, write_text_atomic
 from emlpack.data.augment import AugmentationConfig
 from emlpack.data.dataset import Collater, load_data, make_batch, molecule_id, split_indices
 from emlpack.data.references import (
@@ -216,8 +217,8 @@ class Trainer:
         if self.rank == 0:
             out.mkdir(parents=True, exist_ok=True)
             dump_config(self.cfg, out / "config.yaml")
-            (out / "split.json").write_text(json.dumps(
-                {k: v.tolist() for k, v in self.split.items()}))
+            write_text_atomic(out / "split.json",
+                              json.dumps({k: v.tolist() for k, v in self.split.items()}))
             self._trim_log(out / "log.csv")
         self._print(
             f"{len(self.structures)} structures: train {len(self.split['train'])}, val"
@@ -334,10 +335,12 @@ class Trainer:
             rows = list(csv.DictReader(fh))
         keep = [r for r in rows if int(r["epoch"]) <= self.epoch]
         if len(keep) != len(rows):
-            with open(path, "w", newline="") as fh:
+            def write(fh) -> None:
                 w = csv.DictWriter(fh, fieldnames=list(rows[0]))
                 w.writeheader()
                 w.writerows(keep)
+
+            atomic_write(path, write)
 
     def _log(self, path: Path, row: dict) -> None:
         new = not path.exists()
