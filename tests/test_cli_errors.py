@@ -50,14 +50,13 @@ def test_every_user_error_class_is_an_emlpack_error():
     from emlpack.md_analysis import TrajectoryAnalysisError
     from emlpack.nn.checkpoint import CheckpointError
     from emlpack.qm.pyscf_labeler import LabelingError
-    from emlpack.qm.refxyz import RefXYZError
     from emlpack.qm.sampling import SamplingError
     from emlpack.structure import StructureError
     from emlpack.train.config import ConfigError
 
     classes = [CrystalReferenceError, DataError, HydrideReferenceError, StoreError, ExtxyzError,
                TFCheckpointError, MDWatchdogError, TrajectoryAnalysisError, CheckpointError,
-               LabelingError, RefXYZError, SamplingError, StructureError, ConfigError,
+               LabelingError, SamplingError, StructureError, ConfigError,
                InputError, ModelFileError, MissingFileError]
     for cls in classes:
         assert issubclass(cls, EmlpackError), cls

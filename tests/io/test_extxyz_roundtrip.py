@@ -225,3 +225,25 @@ def test_writing_is_idempotent(glycine, tmp_path, convention):
     write_structures(first, glycine, convention=convention)
     write_structures(second, read_structures(first), convention=convention)
     assert first.read_bytes() == second.read_bytes()
+
+
+def test_reference_frames_keep_every_row_and_recorded_cores_round_trip(eqm7, tmp_path):
+    """read_reference_frames (the labeler's input: all Es rows in file order, field in V/Å)
+    agrees with read_structures; core_centres="recorded" writes back the centres a frame has."""
+    from emlpack.io.extxyz import read_reference_frames
+
+    frames = read_reference_frames(shared_path(EQM7), "0:3")
+    for frame, s in zip(frames, eqm7[:3], strict=True):
+        np.testing.assert_array_equal(frame.numbers, s.numbers)
+        np.testing.assert_array_equal(frame.field, s.field)
+        assert frame.energy == s.energy and frame.source == s.source
+        np.testing.assert_array_equal(frame.forces, s.forces)
+        rows = s.info["core_centre_rows"]
+        np.testing.assert_array_equal(frame.centres[rows], s.info["core_centres"])
+        assert len(frame.centres) == s.n_pairs + len(rows)
+    without = eqm7[0].copy(info={})  # a structure read without core centres
+    path = tmp_path / "mixed.xyz"
+    write_structures(path, [eqm7[0], without], convention="reference", core_centres="recorded")
+    a, b = read_reference_frames(path)
+    np.testing.assert_allclose(a.centres, frames[0].centres, rtol=0, atol=1e-12)
+    assert len(b.centres) == eqm7[0].n_pairs

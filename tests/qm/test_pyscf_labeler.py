@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from emlpack.cli import main
+from emlpack.io.extxyz import ExtxyzError
+from emlpack.io.extxyz import read_reference_frames as read_frames
 from emlpack.qm.levels import PAPER, Level, parse_level
 from emlpack.qm.pyscf_labeler import PySCFLabeler
-from emlpack.qm.refxyz import RefXYZError, read_frames
 from emlpack.qm.relabel import match_centres
 from emlpack.units import ANGSTROM_IN_BOHR, FIELD_AU_IN_V_PER_A, HARTREE
 from tests.conftest import shared_path
@@ -158,7 +159,7 @@ def test_bad_input_names_file_and_frame(tmp_path, capsys):
         "2\nProperties=species:S:1:pos:R:3\nH 0 0 0\nH 0 0 0.74\n"
         "2\nProperties=species:S:1:pos:R:3 efield=\"0.0 0.001\"\nH 0 0 0\nH 0 0 0.74\n"
     )
-    with pytest.raises(RefXYZError, match=r"bad.xyz, frame 1: efield must have 3 components"):
+    with pytest.raises(ExtxyzError, match=r"bad.xyz, frame 1: 'efield' must have 3 components"):
         read_frames(src)
     out = tmp_path / "out.xyz"
     assert main(["relabel", str(src), "-o", str(out), "--quiet"]) == 2

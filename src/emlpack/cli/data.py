@@ -69,7 +69,6 @@ def add_relabel(sub) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
     def run(args):
-        from emlpack.qm.refxyz import RefXYZError
         from emlpack.qm.relabel import relabel
 
         positive(args.boys_starts, "--boys-starts")
@@ -78,7 +77,7 @@ def add_relabel(sub) -> None:
             report = relabel(args.input, args.output, level=args.level, index=args.index,
                              boys_starts=args.boys_starts, progress=not args.quiet,
                              workers=args.workers, scheduler=args.scheduler)
-        except (RefXYZError, ValueError) as exc:
+        except ValueError as exc:  # ExtxyzError included
             raise InputError(str(exc)) from exc
         print(report.summary())
         return 1 if report.n_failed else 0

@@ -23,8 +23,9 @@ from __future__ import annotations
 
 import io
 import os
-import tempfile
 from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 from pathlib import Path
 
 import ase.io
@@ -33,6 +34,7 @@ from ase import Atoms
 from ase.stress import voigt_6_to_full_3x3_stress
 from ase.utils import string2index
 
+from emlpack._files import atomic_write  # noqa: F401  (re-exported: md.py, cli/ call it from here)
 from emlpack.errors import InputError, MissingFileError
 from emlpack.io.cores import CORE_TOLERANCE, split_core_centres
 from emlpack.structure import (
@@ -47,6 +49,10 @@ from emlpack.units import FIELD_AU_IN_V_PER_A
 
 __all__ = [
     "ExtxyzError",
+    "ReferenceFrame",
+    "iread_frame_atoms",
+    "read_reference_frames",
+    "reference_field",
     "check_pair_count",
     "frame_to_structure",
     "read_frame_atoms",
@@ -122,16 +128,29 @@ def iread_structures(
     """
     if convention not in CONVENTIONS:
         raise InputError(f"convention must be one of {CONVENTIONS}, got {convention!r}")
+    frames = iread_frame_atoms(path, index)
+    return (_atoms_to_structure(atoms, convention, source, core_tolerance)
+            for atoms, source in frames)
+
+
+def iread_frame_atoms(
+    path: str | os.PathLike, index: int | slice | str = ":"
+) -> Iterator[tuple[Atoms, str]]:
+    """The raw ASE frames ``index`` of ``path`` (``Es`` rows included) with their sources
+    (``"PATH, frame I"``), parsed one at a time; the file and ``index`` are checked at the call.
+
+    Raises:
+        MissingFileError: no such file.
+        ExtxyzError: naming file, 0-based frame and problem.
+    """
     path = Path(path)
     if not path.is_file():
         raise MissingFileError(f"{path}: no such file")
     wanted = _selection(path, index)
-    return _iterate(path, wanted, convention, core_tolerance)
+    return _iterate(path, wanted)
 
 
-def _iterate(
-    path: Path, wanted: range | set[int], convention: str, core_tolerance: float
-) -> Iterator[Structure]:
+def _iterate(path: Path, wanted: range | set[int]) -> Iterator[tuple[Atoms, str]]:
     last = max(wanted) if isinstance(wanted, (set, frozenset)) and wanted else None
     any_frame = False
     n_frames = 0
@@ -145,8 +164,7 @@ def _iterate(
         if i not in wanted:
             continue
         source = f"{path}, frame {i}"
-        atoms = _parse_frame(text, source, line)
-        yield _atoms_to_structure(atoms, convention, source, core_tolerance)
+        yield _parse_frame(text, source, line), source
     if not any_frame:
         raise ExtxyzError(f"{path}: the file contains no frames")
     if last is not None and len(wanted) == 1 and last >= n_frames:  # an explicit frame number
@@ -286,14 +304,7 @@ def _atoms_to_structure(
     if convention == "auto":
         convention = "native" if "external_field" in info else "reference"
     numbers = atoms.numbers.astype(np.int64)
-    positions = atoms.positions.astype(np.float64)
-    bad = np.flatnonzero(~np.all(np.isfinite(positions), axis=1))
-    if len(bad):
-        r = int(bad[0])
-        raise ExtxyzError(
-            f"{source}: particle row {r} ({atoms.get_chemical_symbols()[r]}) has a non-finite"
-            f" position {positions[r].tolist()}"
-        )
+    positions = _finite_positions(atoms, source)
     flags = np.asarray(atoms.pbc, dtype=bool)
     if flags.any() and not flags.all():
         raise ExtxyzError(
@@ -305,18 +316,7 @@ def _atoms_to_structure(
     if convention == "native":
         field = _vector(info.pop("external_field", np.zeros(3)), "external_field", source)
     else:
-        field = np.zeros(3)
-        if "efield" in info:
-            field_au = _vector(info.pop("efield"), "efield", source)
-            magnitude = float(np.linalg.norm(field_au))
-            if magnitude > MAX_REFERENCE_FIELD_AU:
-                raise ExtxyzError(
-                    f"{source}: |efield| = {magnitude:.4g} atomic units is implausibly large;"
-                    " this looks like a field in V/Å stored under 'efield'. The reference"
-                    " convention stores 'efield' in atomic units (1 au = 51.42 V/Å); write"
-                    " V/Å under 'external_field' instead"
-                )
-            field = field_au * FIELD_AU_IN_V_PER_A
+        field = reference_field(info.pop("efield", None), source)
     charge = _scalar(info.pop("charge", 0.0), "charge", source)
     energy = results.pop("energy", None)
     if energy is not None:
@@ -392,6 +392,88 @@ def _atoms_to_structure(
         raise ExtxyzError(message) from None
 
 
+def _finite_positions(atoms: Atoms, source: str) -> np.ndarray:
+    """The positions (Å) of all rows of a frame; a non-finite one is an error naming its row."""
+    positions = atoms.positions.astype(np.float64)
+    bad = np.flatnonzero(~np.all(np.isfinite(positions), axis=1))
+    if len(bad):
+        r = int(bad[0])
+        raise ExtxyzError(
+            f"{source}: particle row {r} ({atoms.get_chemical_symbols()[r]}) has a non-finite"
+            f" position {positions[r].tolist()}"
+        )
+    return positions
+
+
+def reference_field(efield, source: str) -> np.ndarray:
+    """The field (V/Å) of a reference-convention frame from its ``efield`` value (atomic units;
+    ``None``: no field). The one conversion of the field unit on reading; a magnitude above
+    :data:`MAX_REFERENCE_FIELD_AU` is refused as a field probably written in V/Å."""
+    if efield is None:
+        return np.zeros(3)
+    field_au = _vector(efield, "efield", source)
+    magnitude = float(np.linalg.norm(field_au))
+    if magnitude > MAX_REFERENCE_FIELD_AU:
+        raise ExtxyzError(
+            f"{source}: |efield| = {magnitude:.4g} atomic units is implausibly large;"
+            " this looks like a field in V/Å stored under 'efield'. The reference"
+            " convention stores 'efield' in atomic units (1 au = 51.42 V/Å); write"
+            " V/Å under 'external_field' instead"
+        )
+    return field_au * FIELD_AU_IN_V_PER_A
+
+
+@dataclass
+class ReferenceFrame:
+    """One reference-convention frame as the file holds it, before its electron pairs are
+    checked: the input of a labeler (``emlp relabel``), which may have no ``Es`` rows, only the
+    valence ones or an odd electron count (reported per frame by the labeler, not here).
+
+    ``centres`` are all ``Es`` rows in file order (core centres included), ``field`` is in V/Å
+    (converted by :func:`reference_field`), ``forces`` are on the nuclei (eV/Å).
+    """
+
+    numbers: np.ndarray
+    positions: np.ndarray
+    centres: np.ndarray
+    field: np.ndarray
+    energy: float | None = None
+    forces: np.ndarray | None = None
+    info: dict = dataclass_field(default_factory=dict)
+    source: str = "<memory>"
+
+
+def read_reference_frames(
+    path: str | os.PathLike, index: int | slice | str = ":"
+) -> list[ReferenceFrame]:
+    """The frames ``index`` of a reference-convention file as :class:`ReferenceFrame`
+    (positions and field checked, errors naming file and frame: :class:`ExtxyzError`)."""
+    return [_reference_frame(atoms, source) for atoms, source in iread_frame_atoms(path, index)]
+
+
+def _reference_frame(atoms: Atoms, source: str) -> ReferenceFrame:
+    numbers = atoms.numbers.astype(np.int64)
+    positions = _finite_positions(atoms, source)
+    is_centre = numbers == PAIR_NUMBER
+    if is_centre.all():
+        raise ExtxyzError(f"{source}: no nuclei (only Es centres)")
+    info = dict(atoms.info)
+    results = dict(atoms.calc.results) if atoms.calc is not None else {}
+    field = reference_field(info.pop("efield", None), source)
+    energy = info.pop("energy", results.get("energy"))
+    forces = atoms.arrays.get("force", results.get("forces"))
+    return ReferenceFrame(
+        numbers=numbers[~is_centre],
+        positions=positions[~is_centre],
+        centres=positions[is_centre],
+        field=field,
+        energy=None if energy is None else _scalar(energy, "energy", source),
+        forces=None if forces is None else np.asarray(forces, dtype=np.float64)[~is_centre],
+        info=info,
+        source=source,
+    )
+
+
 def check_pair_count(numbers, n_given: int | None, charge: float, source: str) -> None:
     """Raise :class:`ExtxyzError` unless ``n_given`` electron pairs (``Es`` rows) fit the cores
     ``numbers`` at total ``charge``: the valence pairs, or those plus the 1s core centres
@@ -453,9 +535,9 @@ def write_structures(
     path: str | os.PathLike,
     structures: Structure | Iterable[Structure],
     convention: str = "native",
-    core_centres: bool = False,
+    core_centres: bool | str = False,
 ) -> None:
-    """Write ``structures`` to ``path`` atomically (temporary file, then ``os.replace``).
+    """Write ``structures`` to ``path`` atomically (:func:`emlpack._files.atomic_write`).
 
     ``convention="native"`` writes ``external_field`` (V/Å), ``forces``, ``pair_forces``,
     ``stress`` (eV/Å^3) and ``charge``; ``"reference"`` writes ``efield`` (atomic units),
@@ -463,10 +545,14 @@ def write_structures(
     defines no unit for it). With ``core_centres=True`` (reference only) the inner-shell centres
     are written as ``Es`` rows too: the ones removed on read (``info["core_centres"]``, at their
     original rows) or else ``n_core_pairs(Z)`` centres on each nucleus, before the valence pairs.
+    ``core_centres="recorded"`` writes them only for a structure that records them (a frame read
+    with core centres keeps them, one read without stays without).
     An interrupted or failed write leaves an existing ``path`` untouched.
     """
     if convention not in ("native", "reference"):
         raise ValueError(f"convention must be 'native' or 'reference', got {convention!r}")
+    if core_centres not in (False, True, "recorded"):
+        raise ValueError(f"core_centres must be True, False or 'recorded', got {core_centres!r}")
     if core_centres and convention != "reference":
         raise ValueError("core_centres=True is only meaningful for convention='reference'")
     if isinstance(structures, Structure):
@@ -485,38 +571,12 @@ def write_structures(
     atomic_write(path, write)
 
 
-def atomic_write(path: str | os.PathLike, write) -> None:
-    """Call ``write(fd)`` on a temporary file beside ``path``, then rename it onto ``path``."""
-    path = Path(path)
-    directory = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            write(handle)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.chmod(tmp, _file_mode(path))
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def _file_mode(path: Path) -> int:
-    if path.exists():
-        return path.stat().st_mode & 0o777
-    umask = os.umask(0)
-    os.umask(umask)
-    return 0o666 & ~umask
-
-
 def _structure_to_frame_atoms(
-    s: Structure, convention: str, core_centres: bool
+    s: Structure, convention: str, core_centres: bool | str
 ) -> tuple[Atoms, list[str]]:
     n_cores = s.n_cores
     es = s.pairs
-    if core_centres:
+    if core_centres is True or (core_centres == "recorded" and CORE_CENTRES_KEY in s.info):
         es = _with_core_centres(s)
     numbers = np.concatenate([s.numbers, np.full(len(es), PAIR_NUMBER)])
     atoms = Atoms(

@@ -27,8 +27,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from emlpack.errors import EmlpackError
+from emlpack.io.cores import find_core_centres
 from emlpack.qm.levels import Level, parse_level
-from emlpack.structure import Structure, n_core_pairs
+from emlpack.structure import Structure, StructureError
 from emlpack.units import ANGSTROM_IN_BOHR, BOHR, FIELD_AU_IN_V_PER_A, HARTREE
 
 #: spreads (bohr^2) of two Boys starts closer than this count as the same minimum
@@ -250,11 +251,11 @@ class PySCFLabeler:
             res.forces = -self._gradient(mol, mf, field_au) * (HARTREE * ANGSTROM_IN_BOHR)
         if localize:
             occ = mf.mo_coeff[:, mf.mo_occ > 0]
-            centres_bohr, spreads, note, spread_each = self._boys(mol, occ)
+            centres_bohr, spreads, note, _ = self._boys(mol, occ)
             res.boys_spreads = spreads
             res.boys_note = note
             centres = centres_bohr * BOHR
-            order, core = assign_core_centres(res.numbers, res.positions, centres, spread_each)
+            order, core = assign_core_centres(res.numbers, res.positions, centres)
             res.centres = centres[order]
             res.core_mask = core
 
@@ -326,33 +327,21 @@ class PySCFLabeler:
         return best[1], spreads, note, best[2]
 
 
-def assign_core_centres(numbers, positions, centres, spreads=None):
+def assign_core_centres(numbers, positions, centres):
     """Order centres as core centres (in atom order) then valence; return (order, core_mask).
 
     Each atom with ``k`` core pairs (1 for Li..Ne, 5 for Na..Ar) takes its ``k`` nearest
-    centres (most compact first on ties) within :data:`CORE_CENTRE_MAX_DISTANCE` Å.
+    centres within :data:`CORE_CENTRE_MAX_DISTANCE` Å (:func:`emlpack.io.cores.find_core_centres`,
+    the one home of this rule; a failure is a :class:`LabelingError`).
     """
-    numbers = np.asarray(numbers)
-    positions = np.asarray(positions, dtype=float)
-    centres = np.asarray(centres, dtype=float)
-    spreads = np.zeros(len(centres)) if spreads is None else np.asarray(spreads)
-    taken = np.zeros(len(centres), dtype=bool)
-    core_idx: list[int] = []
-    for a, k in enumerate(n_core_pairs(numbers)):
-        if k == 0:
-            continue
-        dist = np.linalg.norm(centres - positions[a], axis=1)
-        dist[taken] = np.inf
-        cand = np.argsort(dist + 1e-3 * spreads)[:k]
-        if np.any(dist[cand] > CORE_CENTRE_MAX_DISTANCE):
-            raise LabelingError(
-                f"atom {a} (Z={numbers[a]}): found no core centre within"
-                f" {CORE_CENTRE_MAX_DISTANCE} Å (nearest at {dist[cand].max():.3f} Å)"
-            )
-        taken[cand] = True
-        core_idx.extend(int(i) for i in cand)
-    valence = [i for i in range(len(centres)) if not taken[i]]
-    order = np.array(core_idx + valence, dtype=np.int64)
+    centres = np.asarray(centres, dtype=float).reshape(-1, 3)
+    try:
+        core = find_core_centres(numbers, positions, centres, tolerance=CORE_CENTRE_MAX_DISTANCE,
+                                 source="Foster-Boys centres")
+    except StructureError as exc:
+        raise LabelingError(str(exc)) from None
+    valence = np.setdiff1d(np.arange(len(centres)), core)
+    order = np.concatenate([core, valence]).astype(np.int64)
     mask = np.zeros(len(centres), dtype=bool)
-    mask[: len(core_idx)] = True
+    mask[: len(core)] = True
     return order, mask

@@ -16,10 +16,16 @@ import numpy as np
 import yaml
 
 from emlpack._files import write_text_atomic
+from emlpack.io.extxyz import (
+    CORE_CENTRE_ROWS_KEY,
+    CORE_CENTRES_KEY,
+    ReferenceFrame,
+    read_reference_frames,
+    write_structures,
+)
 from emlpack.qm.levels import parse_level
 from emlpack.qm.pyscf_labeler import LabelResult, PySCFLabeler
-from emlpack.qm.refxyz import RefFrame, read_frames, write_frames
-from emlpack.structure import n_core_pairs
+from emlpack.structure import Structure, n_core_pairs
 
 
 @dataclass
@@ -70,28 +76,31 @@ def match_centres(reference: np.ndarray, centres: np.ndarray) -> tuple[np.ndarra
     return order, float(d[rows, cols].max()) if len(rows) else 0.0
 
 
-def relabeled_frame(frame: RefFrame, res: LabelResult, level_name: str) -> RefFrame:
-    """The output frame of ``res`` in the convention of the input ``frame``."""
+def relabeled_frame(frame: ReferenceFrame, res: LabelResult, level_name: str) -> Structure:
+    """The output frame of ``res`` in the convention of the input ``frame``: a
+    :class:`Structure` whose recorded core centres (``info``) put the centres in their output
+    order when written with ``core_centres="recorded"``."""
     n_core = int(n_core_pairs(frame.numbers).sum())
     n_all = len(res.centres)
-    if len(frame.centres) in (0, n_all):
-        centres = res.centres
-    elif len(frame.centres) == n_all - n_core:
-        centres = res.pairs
-    else:
-        centres = res.centres
+    is_core = np.asarray(res.core_mask, dtype=bool)
+    with_cores = len(frame.centres) != n_all - n_core or n_core == 0
+    centres, is_core = (res.centres, is_core) if with_cores else (res.pairs, is_core[~is_core])
     if len(frame.centres) == len(centres) and len(centres):
         order, _ = match_centres(frame.centres, centres)
-        centres = centres[order]
-    info = dict(frame.info)
+        centres, is_core = centres[order], is_core[order]
+    info = {k: v for k, v in frame.info.items() if k not in (CORE_CENTRES_KEY,
+                                                              CORE_CENTRE_ROWS_KEY)}
     info["level"] = level_name
-    return RefFrame(
-        numbers=frame.numbers, positions=frame.positions, centres=centres, field=frame.field,
-        energy=res.energy, forces=res.forces, info=info, source=frame.source,
+    if is_core.any():
+        info[CORE_CENTRES_KEY] = centres[is_core]
+        info[CORE_CENTRE_ROWS_KEY] = np.flatnonzero(is_core)
+    return Structure(
+        numbers=frame.numbers, positions=frame.positions, pairs=centres[~is_core],
+        field=frame.field, energy=res.energy, forces=res.forces, info=info, source=frame.source,
     )
 
 
-def compare(frame: RefFrame, res: LabelResult) -> FrameComparison:
+def compare(frame: ReferenceFrame, res: LabelResult) -> FrameComparison:
     """Differences of ``res`` to the labels stored in ``frame`` (NaN where absent)."""
     d_e = res.energy - frame.energy if frame.energy is not None else float("nan")
     d_f = (
@@ -125,10 +134,10 @@ def relabel(
     """
     from tqdm import tqdm
 
-    frames = read_frames(in_path, index=index)
+    frames = read_reference_frames(in_path, index=index)
     lab = labeler or PySCFLabeler(parse_level(level), boys_starts=boys_starts)
     report = RelabelReport(n_frames=len(frames))
-    out_frames: list[RefFrame] = []
+    out_frames: list[Structure] = []
     results = _results_in_order(frames, lab, workers, scheduler)
     for frame, res in tqdm(zip(frames, results, strict=False), total=len(frames),
                            desc="relabel", unit="frame", disable=not progress, file=sys.stderr):
@@ -140,7 +149,7 @@ def relabel(
             report.notes.append(f"{frame.source}: {res.boys_note}")
         report.comparisons.append(compare(frame, res))
         out_frames.append(relabeled_frame(frame, res, lab.level.name))
-    write_frames(out_path, out_frames)
+    write_structures(out_path, out_frames, convention="reference", core_centres="recorded")
     failed_path = Path(str(out_path) + ".failed.yaml")
     if report.failures:
         write_text_atomic(failed_path,
@@ -150,7 +159,7 @@ def relabel(
     return report
 
 
-def _label_frame(lab: PySCFLabeler, frame: RefFrame) -> LabelResult:
+def _label_frame(lab: PySCFLabeler, frame: ReferenceFrame) -> LabelResult:
     return lab(frame.numbers, frame.positions, frame.field)
 
 
