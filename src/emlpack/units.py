@@ -1,4 +1,5 @@
-"""Every physical constant and unit conversion of emlpack, in one place.
+"""Every physical constant and unit conversion of emlpack, in one place (plus the few fixed
+constants of the paper's method, in their own section; no tunable hyperparameters).
 
 emlpack works in eV, Å, e, eV/Å, V/Å (field) and eV/Å^3 (stress, ASE sign) at every public
 interface. The constants are those of molmod (CODATA-1998 based), the unit system of the
@@ -32,16 +33,22 @@ FEMTOSECOND_IN_AU = 41.341373336646825
 BOLTZMANN_EV_K = 3.1668154051341965e-06 * HARTREE
 #: e·Å -> Debye (1 D = 0.20819434 e·Å)
 E_A_IN_DEBYE = 1.0 / 0.20819434
-#: harmonic spring constant of the data augmentation, Ha/Å^2 -> eV/Å^2
-AUGMENTATION_K_EV_A2 = 2.0 * HARTREE
 
+SQRT_PI = math.sqrt(math.pi)
+
+# ------------------------------------------------------------- method constants of the paper
+# Not tunable hyperparameters but fixed constants of the published method, given in the
+# paper's units (Ha, bohr) and converted here; tests/test_units.py checks them against
+# docs/conventions.md. The tunable defaults that start from them live with their configuration:
+# ``nn.potential.ModelConfig.gcut`` / ``gamma`` and ``data.augment.AugmentationConfig.k``.
+
+#: harmonic spring constant of the data augmentation (2 Ha/Å^2 in the paper), in eV/Å^2
+AUGMENTATION_K_EV_A2 = 2.0 * HARTREE
 #: Gaussian width parameter sigma of the reference (Å); gamma = 1/(2 sigma) = 0.39284 / Å
 REFERENCE_SIGMA = 1.2727922061357857
 REFERENCE_GAMMA = 1.0 / (2.0 * REFERENCE_SIGMA)
 #: reciprocal-space cutoff of the reference Ewald sum, |k|/(2 pi) <= gcut, in 1/bohr
 REFERENCE_GCUT_PER_BOHR = 0.25
-
-SQRT_PI = math.sqrt(math.pi)
 
 # ---------------------------------------------------------------- response and spectroscopy
 # SI constants (CODATA 2018, exact where defined) for report units; the model's own constants
