@@ -2,8 +2,35 @@
 
 from __future__ import annotations
 
+import logging
+import sys
+
 from emlpack.cli.common import add_parser, load_model, positive
 from emlpack.errors import InputError
+
+
+class _StdoutHandler(logging.StreamHandler):
+    """Writes to the current ``sys.stdout`` (looked up at each message, so a replaced stream,
+    e.g. under pytest, is followed)."""
+
+    @property
+    def stream(self):
+        return sys.stdout
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
+
+
+def log_to_stdout() -> None:
+    """Show the library's INFO messages (a run's settings and progress lines) on stdout, as
+    plain lines: the command line's handler (the library installs none). Idempotent."""
+    logger = logging.getLogger("emlpack")
+    if not any(isinstance(h, _StdoutHandler) for h in logger.handlers):
+        handler = _StdoutHandler()
+        handler.setFormatter(logging.Formatter("%(message)s"))
+        logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
 
 
 def add_train(sub) -> None:
@@ -21,6 +48,7 @@ def add_train(sub) -> None:
         from emlpack.train.config import ConfigError, load_config
         from emlpack.train.trainer import train, train_ensemble
 
+        log_to_stdout()
         try:
             cfg = load_config(args.config, args.overrides)
             if args.seeds:
@@ -50,6 +78,7 @@ def add_evaluate(sub) -> None:
     def run(args):
         from emlpack.train.evaluate import evaluate_models
 
+        log_to_stdout()
         if len(args.paths) < 2:
             raise InputError("give MODEL [MODEL ...] DATA")
         for path in args.paths[:-1]:
@@ -75,6 +104,7 @@ def add_demo(sub) -> None:
     def run(args):
         from emlpack.demo import run_demo
 
+        log_to_stdout()
         return run_demo(args.output)
 
     p.set_defaults(func=run, resumable=True)

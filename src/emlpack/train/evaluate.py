@@ -19,6 +19,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +31,8 @@ from emlpack.data.references import reference_from_metadata
 from emlpack.nn.checkpoint import load_model, read_checkpoint
 from emlpack.train.loss import predict
 from emlpack.units import E_A_IN_DEBYE
+
+log = logging.getLogger(__name__)
 
 
 def load_for_evaluation(path: str | Path):
@@ -239,8 +242,8 @@ def select_structures(structures, meta: dict, data_path: str | Path, subset: str
     if not split or subset not in split:
         raise ValueError(f"the checkpoint holds no '{subset}' split; use --subset all")
     if Path(meta.get("data_path", "")).resolve() != Path(data_path).resolve():
-        print(f"note: the split was made on {meta.get('data_path')}; applying its indices to"
-              f" {data_path}")
+        log.warning("the split was made on %s; applying its indices to %s",
+                    meta.get("data_path"), data_path)
     return [structures[i] for i in split[subset]]
 
 

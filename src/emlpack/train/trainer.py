@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
 import os
 import sys
@@ -51,6 +52,8 @@ from emlpack.nn.checkpoint import read_checkpoint, save_model
 from emlpack.nn.potential import EMLP, ModelConfig
 from emlpack.train.config import ConfigError, dump_config
 from emlpack.train.loss import TERMS, LossWeights, Metrics, combine, loss_terms, predict
+
+log = logging.getLogger(__name__)
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
@@ -217,6 +220,8 @@ class Trainer:
         if self.rank == 0:
             out.mkdir(parents=True, exist_ok=True)
             dump_config(self.cfg, out / "config.yaml")
+            log.info("settings (also in %s): %s", out / "config.yaml",
+                     json.dumps(self.cfg, default=str))
             write_text_atomic(out / "split.json",
                               json.dumps({k: v.tolist() for k, v in self.split.items()}))
             self._trim_log(out / "log.csv")
@@ -325,7 +330,7 @@ class Trainer:
     # ------------------------------------------------------------------ output
     def _print(self, text: str) -> None:
         if self.rank == 0:
-            print(text, flush=True)
+            log.info(text)
 
     def _trim_log(self, path: Path) -> None:
         """Drop rows of epochs after the resumed one (a killed run may have logged them)."""
@@ -358,8 +363,8 @@ class Trainer:
         try:
             from torch.utils.tensorboard import SummaryWriter
         except ImportError:
-            print("tensorboard is not installed (pip install emlpack[tensorboard]);"
-                  " logging to log.csv only", file=sys.stderr)
+            log.warning("tensorboard is not installed (pip install emlpack[tensorboard]);"
+                        " logging to log.csv only")
             return None
         return SummaryWriter(str(self.run_dir / "tensorboard"))
 
