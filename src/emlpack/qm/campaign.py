@@ -281,8 +281,9 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
     state = {"last": time.monotonic(), "shards": [], "since": time.time()}
     run = {"host": socket.gethostname(), "cpus": os.cpu_count() or 1, "workers": workers,
            "threads": threads or max(1, (os.cpu_count() or 1) // max(workers, 1))}
-    log.info("campaign %s: %d molecules, %d keys finished in shards; %s", folder,
-             len(molecules), len(done), run)
+    log.info("campaign %s: %d molecules, %d keys finished in shards; %s; hours %s, shards every"
+             " %g min, commit %s; level %s", folder, len(molecules), len(done), run, hours,
+             shard_minutes, commit, recipe.get("level"))
 
     def flush(store: DatasetStore) -> None:
         now = time.time()

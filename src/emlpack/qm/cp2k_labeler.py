@@ -655,11 +655,7 @@ def label_into_store(
                 summary.n_new += 1
             bar.update(1)
     finally:
-        bar.close()
-        executor.close()
-        summary.n_records = len(store)
-        store.close()
-    summary.wall_time = time.perf_counter() - t0
+        summary.close_run(store, bar, executor, t0)
     return summary
 
 

@@ -14,6 +14,7 @@ nothing is stored twice. The recipe is saved in the store, and a resumed run mus
 from __future__ import annotations
 
 import csv
+import logging
 import os
 import re
 import sys
@@ -33,6 +34,8 @@ from emlpack.qm.pyscf_labeler import LabelingError, PySCFLabeler
 from emlpack.qm.recipe import Configuration, configurations
 from emlpack.qm.sampling import PROBES, Molecule, SamplingError, molecule_from_smiles
 from emlpack.units import ANGSTROM_IN_BOHR, HARTREE
+
+log = logging.getLogger(__name__)
 
 #: SMILES of the hydride references
 HYDRIDES = {"H2": "[H][H]", "CH4": "C", "NH3": "N", "H2O": "O"}
@@ -229,6 +232,15 @@ class LabelingSummary:
     failures: list[str] = field(default_factory=list)
     wall_time: float = 0.0
 
+    def close_run(self, store, bar, executor, t0: float) -> None:
+        """End a labeling run (every driver, also on an error): close the progress bar, the
+        executor and the store; record the store's size and the wall time since ``t0``."""
+        bar.close()
+        executor.close()
+        self.n_records = len(store)
+        store.close()
+        self.wall_time = time.perf_counter() - t0
+
     def text(self) -> str:
         lines = [
             f"{self.store}: {self.n_records} records ({self.n_new} new, {self.n_failed_new} new"
@@ -323,6 +335,8 @@ def run_labeling(
             f" recipe (stored recipe:\n{old})"
         )
     store.set_metadata(recipe=recipe_text, level=level)
+    log.info("labeling into %s: level %s, preparation %s, workers %s, scheduler %s, recipe:\n%s",
+             store_path, level, prep_level, workers, scheduler, recipe_text)
     done = set(store.keys()) if retry_failed else store.done_keys()
     done |= set(exclude_keys or ())
     summary = LabelingSummary(str(store_path), skipped_molecules=list(skipped or []))
@@ -465,11 +479,7 @@ def run_labeling(
                 if on_stored and on_stored(store):
                     break
     finally:
-        bar.close()
-        executor.close()
-        summary.n_records = len(store)
-        store.close()
-    summary.wall_time = time.perf_counter() - t0
+        summary.close_run(store, bar, executor, t0)
     return summary
 
 
