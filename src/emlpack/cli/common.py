@@ -130,7 +130,7 @@ def settings(args) -> dict:
 
 
 def write_json(path: str | Path, data: dict) -> None:
-    from emlpack.io.extxyz import atomic_write
+    from emlpack._files import atomic_write
 
     atomic_write(Path(path), lambda fh: json.dump(data, fh, indent=1, default=_jsonable))
 
