@@ -1,5 +1,8 @@
 """``emlp demo``: the whole pipeline on data the package generates itself (< 15 min, 2 cores).
 
+0. **Pretrained model first**: when the pretrained ``mini-eqm7`` ensemble is installed, the
+   IR spectrum and polarizability of a molecule built from SMILES (seconds), through the same
+   commands a user runs (``emlp ir mini-eqm7 --smiles ...``, ``emlp polarizability ...``).
 1. **Label**: small molecules (H2O, NH3, CH4; ASE geometries) randomly displaced, each under a
    random homogeneous field, plus the four reference hydrides, labelled with the project's
    PySCF labeler at the ``quick`` preset (PBE0/6-31G*): energy, forces, Foster-Boys centres.
@@ -9,13 +12,22 @@
 3. **Evaluate** on the held-out test configurations: static errors, pair relaxation (dynamic
    errors, error rate), parity plots (``emlp evaluate``).
 4. **Use** the model through the ASE calculator: Born-Oppenheimer relaxed pairs and dipoles
-   of the test configurations against DFT.
-5. **Report**: ``report.md`` with the tables, the dipoles and the parity plot.
+   of the test configurations against DFT, and the harmonic IR spectrum of water
+   (``emlp ir run/best.pt --smiles O``).
+5. **Report**: ``report.md`` with the tables (one sentence each on what they measure), the
+   dipoles, the parity plot and the IR plots; molecules are named by formula.
+
+The command-line steps run ``emlp`` in a subprocess (:func:`run_command`), so the demo shows
+exactly what a user types and the library does not import the CLI.
 """
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +40,18 @@ HYDRIDE_NAMES = ("H2", "CH4", "NH3", "H2O")
 DEMO_LEVEL = "quick"
 N_PER_MOLECULE = 12
 TRAIN_MINUTES = 5.0
+#: the pretrained model the demo starts with, and its molecule (acetone, not in mini-eQM7's
+#: training split; any H/C/N/O molecule up to 7 heavy atoms is in the model's domain)
+PRETRAINED = "mini-eqm7"
+PRETRAINED_SMILES = "CC(C)=O"
+
+#: runs an ``emlp`` command line (argv without ``emlp``) and returns its exit status
+Command = Callable[[list[str]], int]
+
+
+def run_command(argv: list[str]) -> int:
+    """``emlp ARGV`` in a subprocess of this Python (its output shown as it comes)."""
+    return subprocess.run([sys.executable, "-m", "emlpack.cli", *argv], check=False).returncode
 
 
 def _label_one(task: tuple) -> tuple:
@@ -135,10 +159,83 @@ def dipole_table(model_path: Path, structures) -> list[dict]:
     return rows
 
 
+def pretrained_step(out: Path, command: Command | None, smiles: str = PRETRAINED_SMILES,
+                    name: str = PRETRAINED) -> dict:
+    """IR spectrum and polarizability of ``smiles`` with the pretrained ``name`` through the
+    command line, when that model is installed. Returns what the report shows: ``status``
+    (``done``, ``failed`` or ``not installed``), the commands, the JSON results and files."""
+    from emlpack.pretrained import KNOWN, available
+
+    if command is None or name not in available():
+        return {"status": "not installed", "name": name, "about": KNOWN.get(name, "")}
+    folder = out / "pretrained"
+    folder.mkdir(parents=True, exist_ok=True)
+    ir_json, ir_png = folder / "ir.json", folder / "ir.png"
+    pol_json = folder / "polarizability.json"
+    commands = [["ir", name, "--smiles", smiles, "-o", str(ir_json), "--plot", str(ir_png),
+                 "--quiet"],
+                ["polarizability", name, "--smiles", smiles, "-o", str(pol_json), "--quiet"]]
+    codes = [command(argv) for argv in commands]
+    step = {"name": name, "smiles": smiles, "commands": [" ".join(["emlp", *c]) for c in commands],
+            "status": "done" if codes == [0, 0] else "failed", "exit_codes": codes}
+    if ir_json.exists():
+        step["ir"] = json.loads(ir_json.read_text())
+        step["ir_plot"] = str(ir_png.relative_to(out)) if ir_png.exists() else None
+    if pol_json.exists():
+        step["polarizability"] = json.loads(pol_json.read_text())
+    return step
+
+
+def ir_step(out: Path, model: Path, command: Command | None, smiles: str = "O") -> dict:
+    """Harmonic IR spectrum of ``smiles`` with the demo's trained model (cores and pairs
+    optimised first), through ``emlp ir``."""
+    if command is None:
+        return {"status": "skipped (no command runner)"}
+    argv = ["ir", str(model), "--smiles", smiles, "-o", str(out / "ir_water.json"),
+            "--plot", str(out / "ir_water.png"), "--quiet"]
+    code = command(argv)
+    step = {"command": " ".join(["emlp", *argv[:4], "-o ir_water.json --plot ir_water.png"]),
+            "status": "done" if code == 0 else f"failed (exit {code})"}
+    if (out / "ir_water.json").exists():
+        step["ir"] = json.loads((out / "ir_water.json").read_text())
+    return step
+
+
+def _pretrained_lines(step: dict) -> list[str]:
+    lines = ["## 0. A pretrained model first", ""]
+    if step["status"] == "not installed":
+        return lines + [
+            f"The pretrained ensemble `{step['name']}` ({step['about']}) is not installed with"
+            " this copy of emlpack: its data set (`datasets/mini-eqm7/`) is still being"
+            f" labeled. Once it ships, this step runs `emlp ir {step['name']} --smiles"
+            f" {PRETRAINED_SMILES}` and `emlp polarizability {step['name']} --smiles"
+            f" {PRETRAINED_SMILES}` (seconds, no training).", ""]
+    lines += [f"`{step['name']}` on the molecule of SMILES `{step['smiles']}` (pairs guessed"
+              " and relaxed, cores optimised for the IR spectrum):", "",
+              *[f"    {c}" for c in step["commands"]], ""]
+    if step["status"] != "done":
+        lines += [f"**The commands failed** (exit codes {step['exit_codes']}).", ""]
+    pol = step.get("polarizability")
+    if pol:
+        std = pol.get("polarizability_isotropic_bohr3_std")
+        lines.append(f"Isotropic polarizability {pol['polarizability_isotropic_bohr3']:.2f}"
+                     + (f" ± {std:.2f}" if std is not None else "") + " bohr³, dipole"
+                     f" {pol['dipole_norm_debye']:.2f} D.")
+    for w in (pol or {}).get("warnings", []) + step.get("ir", {}).get("warnings", []):
+        lines.append(f"- warning: {w}")
+    if step.get("ir_plot"):
+        lines += ["", f"![IR spectrum, pretrained ensemble]({step['ir_plot']})"]
+    return lines + [""]
+
+
 def write_report(out: Path, times: dict, table: str, dipoles: list[dict],
-                 calc_rows: list[dict], cfg: dict, n_data: int) -> Path:
+                 calc_rows: list[dict], cfg: dict, n_data: int,
+                 pretrained: dict | None = None, ir: dict | None = None) -> Path:
     lines = [
         "# emlpack demo report", "",
+        *_pretrained_lines(pretrained or {"status": "not installed", "name": PRETRAINED,
+                                          "about": ""}),
+        "## 1-4. Label, train, evaluate and use a small model", "",
         f"Data: {n_data} configurations of {', '.join(MOLECULES)} under random fields, plus"
         f" the hydrides {', '.join(HYDRIDE_NAMES)}, labelled with PySCF at the"
         f" '{DEMO_LEVEL}' preset (PBE0/6-31G*) with Foster-Boys centres -> `data.h5`.",
@@ -148,15 +245,27 @@ def write_report(out: Path, times: dict, table: str, dipoles: list[dict],
         f" {cfg['data']['fractions']}, live hydride references) -> `run/best.pt`.", "",
         "| step | wall time [s] |", "|---|---|",
         *[f"| {k} | {v:.0f} |" for k, v in times.items()], "",
+        "How to read the tables: *static errors* compare the model's energy and forces with DFT"
+        " at the DFT geometry with the electron pairs on the DFT Foster-Boys centres (how well"
+        " the network fits the labels); *dynamic errors* first relax the pairs to the model's"
+        " own minimum, as every prediction does, and compare there (what a user gets), with the"
+        " error rate counting relaxations that fail; the *intrinsic variability* is the error"
+        " of the best constant guess, the scale an error should be far below.", "",
         table.replace("## ", "## Test set: ", 1), "",
         "![parity plots](evaluation/parity.png)", "",
         "## Dipoles of the test configurations at relaxed pairs vs DFT", "",
-        "| configuration | DFT [D] | eMLP [D] | max pair shift [Å] | relaxation |",
-        "|---|---|---|---|---|",
+        "Each test configuration's dipole with the pairs relaxed by the model, against the"
+        " dipole of the DFT Boys centres; the pair shift is how far the model moved a pair"
+        " from its DFT centre.", "",
+        "| configuration | formula | DFT [D] | eMLP [D] | max pair shift [Å] | relaxation |",
+        "|---|---|---|---|---|---|",
     ]
+    formulas = {r["structure"]: r["formula"] for r in calc_rows}
     for r in dipoles:
-        lines.append(f"| {r['structure']} | {r['dft_dipole_D']:.3f} | {r['emlp_dipole_D']:.3f} |"
-                     f" {r['max_pair_shift']:.3f} | {r['failure'] or 'ok'} |")
+        formula = formulas.get(r["structure"]) or r["structure"].split("/")[0]
+        lines.append(f"| {r['structure']} | {formula} | {r['dft_dipole_D']:.3f} |"
+                     f" {r['emlp_dipole_D']:.3f} | {r['max_pair_shift']:.3f} |"
+                     f" {r['failure'] or 'ok'} |")
     lines += ["", "## The same through the ASE calculator (one configuration per molecule)", "",
               "| configuration | formula | DFT [D] | eMLP [D] | max pair shift [Å] | relaxation |",
               "|---|---|---|---|---|---|"]
@@ -164,6 +273,17 @@ def write_report(out: Path, times: dict, table: str, dipoles: list[dict],
         lines.append(f"| {r['structure']} | {r['formula']} | {r['dft_dipole_D']:.3f} |"
                      f" {r['emlp_dipole_D']:.3f} | {r['max_pair_shift_A']:.3f} |"
                      f" {r['relaxation']} |")
+    if ir:
+        lines += ["", "## Harmonic IR spectrum of water with the demo model", "",
+                  f"`{ir.get('command', '')}`: {ir['status']}."]
+        freqs = ir.get("ir", {}).get("frequencies_cm-1")
+        if freqs:
+            lines.append("Wavenumbers " + ", ".join(f"{f:.0f}" for f in freqs)
+                         + " cm⁻¹ (PBE0 water: about 1600, 3800, 3900 cm⁻¹ harmonic).")
+        for w in ir.get("ir", {}).get("warnings", []):
+            lines.append(f"- warning: {w}")
+        if (out / "ir_water.png").exists():
+            lines += ["", "![IR spectrum of water, demo model](ir_water.png)"]
     lines += ["", "A demo-sized model on a few dozen configurations: the numbers show the"
               " pipeline and its trends, not the paper's accuracy."]
     path = out / "report.md"
@@ -172,8 +292,10 @@ def write_report(out: Path, times: dict, table: str, dipoles: list[dict],
 
 
 def run_demo(output: str | Path = "demo_output", minutes: float = TRAIN_MINUTES,
-             n_per_molecule: int = N_PER_MOLECULE) -> int:
-    """Run the pipeline, writing data, run, evaluation and ``report.md`` under ``output``."""
+             n_per_molecule: int = N_PER_MOLECULE, command: Command | None = run_command) -> int:
+    """Run the pipeline, writing data, run, evaluation and ``report.md`` under ``output``.
+    ``command`` runs ``emlp`` command lines (default :func:`run_command`); ``None`` skips the
+    pretrained and IR steps."""
     from emlpack.data.dataset import load_data
     from emlpack.train.evaluate import evaluate_models, select_structures
     from emlpack.train.trainer import train
@@ -181,6 +303,15 @@ def run_demo(output: str | Path = "demo_output", minutes: float = TRAIN_MINUTES,
     out = Path(output).resolve()
     out.mkdir(parents=True, exist_ok=True)
     times = {}
+    t0 = time.monotonic()
+    print(f"[0/4] pretrained model {PRETRAINED}: IR spectrum and polarizability of"
+          f" {PRETRAINED_SMILES} from SMILES")
+    pretrained = pretrained_step(out, command)
+    if pretrained["status"] == "not installed":
+        print(f"  {PRETRAINED} is not installed with this copy of emlpack (its data set is still"
+              " being labeled): skipped")
+    times["pretrained model"] = time.monotonic() - t0
+
     t0 = time.monotonic()
     print(f"[1/4] DFT labels ({DEMO_LEVEL}: PBE0/6-31G*, Foster-Boys) -> {out / 'data.h5'}")
     generate_labels(out / "data.h5", n_per_molecule)
@@ -214,8 +345,11 @@ def run_demo(output: str | Path = "demo_output", minutes: float = TRAIN_MINUTES,
     for r in calc_rows:
         print(f"  {r['formula']:>4}: DFT {r['dft_dipole_D']:.3f} D, eMLP {r['emlp_dipole_D']:.3f}"
               f" D ({r['relaxation']})")
-    times["calculator"] = time.monotonic() - t0
+    ir = ir_step(out, best, command)
+    print(f"  IR spectrum of water with the demo model: {ir['status']}")
+    times["calculator and IR"] = time.monotonic() - t0
     dipoles = results["models"][0]["dynamic"]["structures"]
-    report = write_report(out, times, table, dipoles, calc_rows, cfg, len(structures))
+    report = write_report(out, times, table, dipoles, calc_rows, cfg, len(structures),
+                          pretrained, ir)
     print(f"wrote {report} (total {sum(times.values()) / 60:.1f} min)")
     return 0

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
 import pytest
 
 from tests.conftest import require
@@ -15,5 +18,49 @@ def test_demo_pipeline_writes_the_report(tmp_path):
     assert run_demo(tmp_path, minutes=0.1, n_per_molecule=2) == 0
     report = (tmp_path / "report.md").read_text()
     assert "Static errors" in report and "error rate" in report and "Dipoles" in report
+    assert "How to read the tables" in report and "| formula |" in report
+    assert "A pretrained model first" in report
+    assert (tmp_path / "ir_water.png").exists() and "ir_water.png" in report
     assert (tmp_path / "evaluation" / "parity.png").exists()
     assert (tmp_path / "run" / "best.pt").exists()
+
+
+def test_demo_without_the_pretrained_model_says_so(tmp_path, monkeypatch):
+    import emlpack.pretrained as pretrained
+    from emlpack.demo import _pretrained_lines, pretrained_step
+
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "none")
+    (tmp_path / "none").mkdir()
+    calls = []
+    step = pretrained_step(tmp_path, lambda argv: calls.append(argv) or 0)
+    assert step["status"] == "not installed" and calls == []
+    text = "\n".join(_pretrained_lines(step))
+    assert "is not installed" in text and "emlp ir mini-eqm7" in text
+
+
+def test_demo_starts_with_an_installed_pretrained_model(tmp_path, monkeypatch):
+    """A toy ensemble installed as ``mini-eqm7``: the demo's first step runs ``emlp ir`` and
+    ``emlp polarizability`` on a SMILES molecule and the report shows the results."""
+    require("pyscf")
+    require("rdkit")
+    import emlpack.pretrained as pretrained
+    from emlpack.demo import _pretrained_lines, pretrained_step
+    from tests.cli_helpers import run
+
+    # the benchmark fixture: a small model trained on the shared eqm7 subset (methane ... ethanol)
+    trained = Path(__file__).resolve().parents[2] / "benchmarks/fixtures/eqm7_small_trained.pt"
+    root = tmp_path / "pretrained"
+    pretrained.export_pretrained([trained, trained], root / "mini-eqm7", "# toy\n")
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", root)
+    out = tmp_path / "demo"
+    out.mkdir()
+    step = pretrained_step(out, lambda argv: run(argv)[0], smiles="C")
+    assert step["exit_codes"] == [0, 0], step
+    assert step["status"] == "done"
+    freqs = np.asarray(step["ir"]["frequencies_cm-1"])
+    assert len(freqs) == 9 and 1000 < freqs.min() and freqs.max() < 3600   # methane
+    assert step["ir"]["warnings"] == [] and step["polarizability"]["warnings"] == []
+    assert "polarizability_isotropic_bohr3_std" in step["polarizability"]   # an ensemble
+    assert (out / step["ir_plot"]).exists()
+    text = "\n".join(_pretrained_lines(step))
+    assert "Isotropic polarizability" in text and "emlp ir mini-eqm7 --smiles C" in text
