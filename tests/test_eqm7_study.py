@@ -94,7 +94,8 @@ def test_every_stage_writes_its_outputs(study_run):
     mod, cfg, study, root, _ = study_run
     work = root / "work"
     assert study.work == {"train": 4, "evaluate": 8 if "pbe0_subset" in mod.test_sets(study)
-                          else 4, "dft": 1, "polarizability": 4, "ir": 4, "md": 4, "table": 1}
+                          else 4, "dft": 1, "polarizability": 4, "ir": 4, "md": 4, "table": 1,
+                          "export": 1}
     for group in ("aug", "noaug"):
         for seed in (0, 1):
             run = work / "models" / group / f"seed{seed}"
@@ -168,6 +169,25 @@ def test_results_are_finite_and_consistent(study_run):
         assert g["stable"] + g["transition"] + g["unstable"] == g["runs"]
     assert len(res["targets"]) == 5
     assert all(t["met"] in (True, False, None) for t in res["targets"])
+
+
+def test_export_ships_the_augmented_ensemble_with_its_card(study_run):
+    """A preliminary study exports into the work folder (never into the package); the export
+    loads by name, holds the augmented models and a card quoting the measured errors."""
+    from emlpack.ensemble import load_pretrained
+    from emlpack.pretrained import PRETRAINED_DIR, model_card
+
+    mod, cfg, study, root, _ = study_run
+    assert not (PRETRAINED_DIR / "mini-eqm7").exists() or cfg["status"] == "final"
+    folder = root / "work" / "pretrained"
+    ensemble = load_pretrained("mini-eqm7", root=folder)
+    assert len(ensemble.members) == 2
+    card = model_card("mini-eqm7", folder)
+    result = json.loads((root / "results" / "results.json").read_text())
+    mae = result["evaluation"]["test"]["groups"]["aug"]["static"]["mae"]["forces"]["mean"]
+    assert f"{1000 * mae:.1f}" in card            # the measured core-force MAE is quoted
+    assert "PBE0/aug-cc-pVTZ" in card and "How to cite" in card and "Domain" in card
+    assert "Status: **preliminary**" in card
 
 
 def test_rerun_redoes_nothing(study_run):

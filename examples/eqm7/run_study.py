@@ -24,6 +24,10 @@ temporary file and renamed, so a killed run leaves no half-written result)::
                     -> WORKDIR/md/MODEL/NAME/{trajectory.xyz, analysis.json}; Figure 3 PNG
     table           RESULTS_DIR/results.json + results.md (paper's numbers beside ours,
                     issue 15's targets with the measured values)
+    export          the augmented ensemble as a pretrained model (float32 weights + a model
+                    card with the measured errors from results.json) -> the package's
+                    src/emlpack/pretrained/NAME/ when status is final, else
+                    WORKDIR/pretrained/NAME/ (load it with load_pretrained(NAME, root=...))
     all             every stage above in this order
 
 Usage (from the project root)::
@@ -53,7 +57,7 @@ import numpy as np
 import yaml
 
 HERE = Path(__file__).resolve().parent
-STAGES = ("train", "evaluate", "dft", "polarizability", "ir", "md", "table")
+STAGES = ("train", "evaluate", "dft", "polarizability", "ir", "md", "table", "export")
 
 #: The paper's numbers (emlp-paper.tex): Table 2 (static), Table 3 (dynamic), the MD section
 #: (Figure 3) and the IR section (Figure 4). Energies meV/atom, forces meV/Å, dipole D,
@@ -1164,6 +1168,123 @@ def markdown(result: dict, notes: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
+# ---------------------------------------------------------------------- export
+def stage_export(study: Study) -> Path:
+    """The ``export.group`` ensemble (default: augmented) as a pretrained model with its card.
+
+    Into the package (``src/emlpack/pretrained/NAME``) only when the study's ``status`` is
+    ``final`` (the full campaign data set); a preliminary ensemble goes to
+    ``WORKDIR/pretrained/NAME`` so that no half-trained model ships by accident."""
+    from emlpack.pretrained import PRETRAINED_DIR, export_pretrained
+
+    e = study.cfg.get("export", {}) or {}
+    name = e.get("name", "mini-eqm7")
+    group = e.get("group", "aug")
+    results = _read_json(Path(study.cfg.get("results_dir", HERE)) / "results.json")
+    if results is None:
+        raise SystemExit("export: no results.json (run the table stage first: the card quotes"
+                         " its measured errors)")
+    models = [path for g, _, path in study.require_models() if g == group]
+    if not models:
+        raise SystemExit(f"export: no trained model in group {group!r}")
+    final = study.cfg.get("status") == "final"
+    folder = Path(e["dir"]) if e.get("dir") else (
+        PRETRAINED_DIR / name if final else study.workdir / "pretrained" / name)
+    files = export_pretrained(models, folder, model_card(results, name, group, len(models)))
+    study.work["export"] += 1
+    where = "the package" if final and not e.get("dir") else str(folder)
+    study.log(f"export: {len(models)} {GROUP_LABEL[group]} models -> {folder} ({where};"
+              f" {sum(f.stat().st_size for f in files) / 1e6:.2f} MB)")
+    return folder
+
+
+def model_card(result: dict, name: str, group: str, n_models: int) -> str:
+    """The model card (Markdown) of the exported ensemble, from the study's ``results.json``."""
+    d = result["data"]
+    by = d["by_split"]
+    ev = (result.get("evaluation") or {}).get("test") or {}
+    g = (ev.get("groups") or {}).get(group)
+    pol = ((result.get("polarizability") or {}).get("groups") or {}).get(group)
+    ir = ((result.get("ir") or {}).get("groups") or {}).get(group)
+    md = ((result.get("md") or {}).get("groups") or {}).get(group)
+    cfg = result.get("train_config", {})
+    lines = [
+        f"# {name}: an eMLP ensemble trained on mini-eQM7", "",
+        f"Status: **{result['status']}** (generated {result['generated']} by"
+        " `examples/eqm7/run_study.py export`).", "",
+        "## Level of theory", "",
+        "Labels: PBE0/aug-cc-pVTZ with density fitting (aug-cc-pVTZ-JKFIT), restricted"
+        " Kohn-Sham, PySCF; energies, forces under random homogeneous fields up to 0.01 au,"
+        " Foster-Boys centres as the electron pairs (the paper's level).", "",
+        "## Data", "",
+        f"{d['configurations']} configurations ({d['shards']} shards of"
+        " `datasets/mini-eqm7/`): train"
+        f" {by['train']['configurations']} configurations of {by['train']['molecules']}"
+        f" molecules, validation {by['val']['configurations']} of {by['val']['molecules']},"
+        f" test {by['test']['configurations']} of {by['test']['molecules']} (split by"
+        " molecule, fixed in `molecules.csv` before labeling); normal-mode sampling at 600 and"
+        " 800 K, torsions and dimers with CH4/NH3/H2O as in the paper.", "",
+        "## Models", "",
+        f"{n_models} {GROUP_LABEL[group]} models (seeds {', '.join(map(str, range(n_models)))};"
+        f" training config `examples/eqm7/train.yaml` with overrides"
+        f" {cfg.get('overrides') or 'none'}), weights stored in float32. With several members"
+        " the calculator and every command report the mean and the spread (`energy_std`,"
+        " `forces_std`, `dipole_std`, ...) and warn when the spread is large.", "",
+        "## Measured on molecules the models never saw (the card's test molecules)", ""]
+    if g:
+        s, dyn = g["static"], g["dynamic"]
+        lines += [
+            "| quantity | MAE | median |", "|---|---|---|",
+            f"| energy, static [meV/atom] | {_ms(s['mae']['energy'], 1000)} |"
+            f" {_ms(s['median']['energy'], 1000)} |",
+            f"| core forces, static [meV/Å] | {_ms(s['mae']['forces'], 1000)} |"
+            f" {_ms(s['median']['forces'], 1000)} |",
+            f"| pair forces, static [meV/Å] | {_ms(s['mae']['pair_forces'], 1000)} |"
+            f" {_ms(s['median']['pair_forces'], 1000)} |"]
+        if dyn:
+            lines += [
+                f"| energy, pairs relaxed [meV/atom] | {_ms(dyn['mae']['energy'], 1000)} |"
+                f" {_ms(dyn['median']['energy'], 1000)} |",
+                f"| core forces, pairs relaxed [meV/Å] | {_ms(dyn['mae']['forces'], 1000)} |"
+                f" {_ms(dyn['median']['forces'], 1000)} |",
+                f"| dipole norm [D] | {_ms(dyn['mae']['dipole'], 1, 3)} |"
+                f" {_ms(dyn['median']['dipole'], 1, 3)} |"]
+        if pol:
+            lines.append(f"| polarizability [bohr³] | {_ms(pol['mae'], 1, 2)} |"
+                         f" {_ms(pol['median'], 1, 2)} |")
+        lines += ["", "Mean (± std) over the models; the paper's values and the"
+                  " non-augmented models are in `examples/eqm7/results.md`."]
+        if dyn:
+            lines.append(f"Error rate of the pair relaxations: {_ms(dyn['error_rate'], 100)} %.")
+    else:
+        lines.append("*Not evaluated.*")
+    if ir:
+        lines.append(f"Harmonic IR frequencies: MAE {_ms(ir['frequency_mae'], 1, 1)} cm⁻¹"
+                     " against PBE0/aug-cc-pVTZ (modes in ascending order).")
+    if md:
+        lines.append(f"MD (500 fs NVT at 300 K): {md['runs']} runs, {md['stable']} stable,"
+                     f" {md['unstable']} unstable, {md['bonding_changed']} with bonding"
+                     " changed.")
+    lines += [
+        "", "## Domain", "",
+        "Neutral closed-shell molecules of H, C, N and O with up to 7 heavy atoms, near their"
+        " equilibrium geometry (thermal distortions up to ~800 K) and in homogeneous fields up"
+        " to 0.01 au (0.51 V/Å). Other elements are refused; larger or charged molecules,"
+        " crystals and reactive geometries are outside the training data: the calculator warns"
+        " on unknown elements, a large ensemble spread, failed pair relaxations and changed"
+        " bonding.", "",
+        "## Energies", "",
+        "Total energies are on the DFT scale: the DFT energies of the four reference hydrides"
+        " (H2, CH4, NH3, H2O at the same level) are added back to the model's relative energy,"
+        " so `atoms.get_potential_energy()` compares directly with a PySCF PBE0/aug-cc-pVTZ"
+        " total energy (docs/pretrained.md).", "",
+        "## How to cite", "",
+        "Cools-Ceuppens, M.; Dambre, J.; Verstraelen, T. Modeling Electronic Response"
+        " Properties with an Explicit-Electron Machine Learning Potential. J. Chem. Theory"
+        " Comput. 2022, 18, 1672-1691. doi:10.1021/acs.jctc.1c00978 — and emlpack.", ""]
+    return "\n".join(lines)
+
+
 # ---------------------------------------------------------------------- driver
 def run(stages: list[str], cfg: dict, log=print) -> Study:
     """Run ``stages`` in order (``"all"``: every stage)."""
@@ -1178,7 +1299,7 @@ def run(stages: list[str], cfg: dict, log=print) -> Study:
         t0 = time.perf_counter()
         {"train": stage_train, "evaluate": stage_evaluate, "dft": stage_dft,
          "polarizability": stage_polarizability, "ir": stage_ir, "md": stage_md,
-         "table": stage_table}[s](study)
+         "table": stage_table, "export": stage_export}[s](study)
         log(f"{s}: {time.perf_counter() - t0:.1f} s")
     return study
 
