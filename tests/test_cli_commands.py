@@ -11,6 +11,7 @@ import pytest
 from emlpack.cli import build_parser
 from emlpack.io import read_structures
 from tests.cli_helpers import WATER_CORES, run, save_test_model, water_rows, write_xyz
+from tests.conftest import ROOT
 
 COMMANDS = ["train", "evaluate", "demo", "label", "relabel", "convert-reference", "campaign",
             "ir", "polarizability", "response", "optimize", "md", "md-analysis", "md-ir"]
@@ -43,6 +44,10 @@ def test_help(command):
     rc, out, _ = run([command, "--help"])
     assert rc == 0
     assert f"usage: emlp {command}" in out
+    # every command takes --threads (the campaign's on its run sub-command)
+    rc, sub_out, _ = run([command, "run", "--help"] if command == "campaign" else
+                         [command, "--help"])
+    assert rc == 0 and "--threads" in sub_out, command
     if command in ("ir", "polarizability", "response", "optimize", "md"):
         for flag in ("--smiles", "--index", "--charge", "--field", "--field-au", "--threads",
                      "-o OUTPUT, --output OUTPUT"):
@@ -413,3 +418,26 @@ def test_train_then_evaluate(model, tmp_path):
     assert table  # the tables were written
     rc, _, err = run(["train", str(path), "training.nonsense=1"])
     assert rc == 2 and err.strip().startswith("emlp train: error:")
+
+
+def test_threads_below_one_is_one_line_for_every_command(tmp_path):
+    for argv in (["md-analysis", "x.xyz"], ["evaluate", "m.pt", "d.h5"], ["ir", "m.pt", "x"]):
+        rc, _, err = run([*argv, "--threads", "0"])
+        assert rc == 2 and err.strip().endswith("--threads must be at least 1, got 0"), argv
+        assert len(err.strip().splitlines()) == 1
+
+
+def test_train_threads_flag_overrides_the_config(tmp_path, monkeypatch):
+    import emlpack.train.trainer as trainer
+
+    seen = {}
+
+    def fake_train(cfg, resume=True):
+        seen.update(cfg["training"])
+        return tmp_path / "best.pt"
+
+    monkeypatch.setattr(trainer, "train", fake_train)
+    rc, _, err = run(["train", str(ROOT / "configs" / "small_cpu.yaml"), "training.threads=2",
+                      "--threads", "1"])
+    assert rc == 0, err
+    assert seen["threads"] == 1

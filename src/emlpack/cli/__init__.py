@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from emlpack.errors import EmlpackError
+from emlpack.errors import EmlpackError, InputError
 from emlpack.threads import configure_thread_environment
 
 #: exit status of a user error (as argparse's own) and of an interrupt (128 + SIGINT)
@@ -56,6 +56,8 @@ def main(argv: list[str] | None = None) -> int:
     threads = getattr(args, "threads", None)
     configure_thread_environment(threads if isinstance(threads, int) and threads >= 1 else None)
     try:
+        if isinstance(threads, int) and threads < 1:
+            raise InputError(f"--threads must be at least 1, got {threads}")
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         if debug:

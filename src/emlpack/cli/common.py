@@ -39,12 +39,18 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
-def add_parser(sub, name: str, help: str, description: str | None = None):
-    """A sub-command parser with defaults in ``--help`` and ``--debug``."""
+def add_parser(sub, name: str, help: str, description: str | None = None,
+               threads: bool = True, threads_default: int | None = None):
+    """A sub-command parser with defaults in ``--help``, ``--debug`` and ``--threads`` (the
+    threads of this process and of the processes it starts: ``emlp`` sets ``OMP_NUM_THREADS``
+    from it before torch or PySCF is imported; ``threads=False`` for a command group whose
+    sub-commands define their own)."""
     p = sub.add_parser(name, help=help, description=description or help,
                        formatter_class=HelpFormatter)
     p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                    help="show the traceback of an error")
+    if threads:
+        add_threads_argument(p, threads_default)
     return p
 
 
@@ -92,7 +98,8 @@ def add_field_arguments(p) -> None:
 
 def add_threads_argument(p, default: int | None = None) -> None:
     p.add_argument("--threads", type=int, default=default,
-                   help="torch threads" + ("" if default else " (default: torch's choice)"))
+                   help="threads (torch, PySCF)" + ("" if default else " (default: min(cores,"
+                   " 4) unless OMP_NUM_THREADS is set; idle threads wait passively)"))
 
 
 def add_quiet_argument(p) -> None:

@@ -109,7 +109,8 @@ def add_convert_reference(sub) -> None:
 
 def add_campaign(sub) -> None:
     p = add_parser(sub, "campaign", help="a labeling campaign into immutable shards"
-                       " (init: molecule list and split; run: label, resumable; card)")
+                       " (init: molecule list and split; run: label, resumable; card)",
+                   threads=False)
     csub = p.add_subparsers(dest="action", required=True)
     pi = csub.add_parser("init", help="fix the molecule list, its seed and the split")
     pi.add_argument("folder", help="data-set folder, e.g. datasets/mini-eqm7")

@@ -12,7 +12,6 @@ from emlpack.cli.common import (
     add_parser,
     add_quiet_argument,
     add_structure_arguments,
-    add_threads_argument,
     apply_field,
     load_model,
     positive,
@@ -27,7 +26,7 @@ from emlpack.errors import InputError
 
 def add_md(sub) -> None:
     p = add_parser(sub, "md", "Born-Oppenheimer MD with relaxed electron pairs (NVT/NVE,"
-                   " optional field); resumable")
+                   " optional field); resumable", threads_default=1)
     add_model_argument(p)
     add_structure_arguments(p)
     p.add_argument("--frame", dest="index", help=argparse.SUPPRESS)  # the old name of --index
@@ -50,7 +49,6 @@ def add_md(sub) -> None:
     p.add_argument("--curvature-every", type=int, default=50,
                    help="exact pair Hessian (curvature check) every N steps")
     p.add_argument("--seed", type=int, default=0, help="seed of the initial velocities")
-    add_threads_argument(p, default=1)
     p.add_argument("--no-resume", action="store_true", help="start over (deletes the old run)")
     p.add_argument("--no-pairs", action="store_true",
                    help="also write trajectory_atoms.xyz: the atoms without the Es rows of the"

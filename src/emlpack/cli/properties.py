@@ -19,7 +19,6 @@ from emlpack.cli.common import (
     add_parser,
     add_quiet_argument,
     add_structure_arguments,
-    add_threads_argument,
     apply_field,
     energy_record,
     load_members,
@@ -48,7 +47,6 @@ def _common(p, relax_default: str, output_default: str, output_help: str) -> Non
     p.add_argument("--max-iterations", type=int, default=100,
                    help="optimiser iterations for positions/cell")
     add_field_arguments(p)
-    add_threads_argument(p)
     add_quiet_argument(p)
 
 

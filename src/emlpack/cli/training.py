@@ -49,8 +49,11 @@ def add_train(sub) -> None:
         from emlpack.train.trainer import train, train_ensemble
 
         log_to_stdout()
+        overrides = list(args.overrides)
+        if args.threads is not None:  # --threads wins over the config's training.threads
+            overrides.append(f"training.threads={args.threads}")
         try:
-            cfg = load_config(args.config, args.overrides)
+            cfg = load_config(args.config, overrides)
             if args.seeds:
                 paths = train_ensemble(cfg, args.seeds, resume=not args.restart)
             else:
