@@ -21,9 +21,9 @@ import numpy as np
 import torch
 
 from emlpack.errors import EmlpackError
+from emlpack.geometry import schur_complement
 from emlpack.nn.potential import EMLP
 from emlpack.relax import RelaxOptions, relax_pairs
-from emlpack.response import schur_complement
 from emlpack.structure import Structure
 
 

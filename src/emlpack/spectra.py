@@ -48,13 +48,9 @@ from pathlib import Path
 import numpy as np
 from ase.data import atomic_masses
 
+from emlpack.geometry import normal_modes
 from emlpack.nn.potential import EMLP
-from emlpack.response import (
-    born_oppenheimer_blocks,
-    extended_hessian,
-    internal_basis,
-    rigid_body_modes,
-)
+from emlpack.response import born_oppenheimer_blocks, extended_hessian
 from emlpack.structure import Structure
 from emlpack.units import (
     BOLTZMANN_EV_K,
@@ -119,27 +115,6 @@ def lorentzian(grid: np.ndarray, centres: np.ndarray, heights: np.ndarray, fwhm:
     g = 0.5 * fwhm
     d = np.asarray(grid)[:, None] - np.asarray(centres)[None, :]
     return (np.asarray(heights)[None, :] * (g / np.pi) / (d * d + g * g)).sum(axis=1)
-
-
-def normal_modes(
-    hessian: np.ndarray, positions: np.ndarray, masses: np.ndarray, project: bool = True
-) -> tuple[np.ndarray, np.ndarray]:
-    """Eigenvalues (eV/(Å² amu)) and mass-weighted eigenvectors (3N, n_modes) of a Cartesian
-    Hessian, with rigid translations/rotations projected out when ``project``."""
-    w = 1.0 / np.sqrt(np.repeat(masses, 3))
-    h_mw = w[:, None] * 0.5 * (hessian + hessian.T) * w[None, :]
-    if project:
-        sqrt_m = np.sqrt(np.repeat(masses, 3))
-        # rigid modes in mass-weighted coordinates: sqrt(m_i) times the Cartesian ones about
-        # the centre of mass
-        com = masses @ positions / masses.sum()
-        rigid = rigid_body_modes(positions - com) * sqrt_m[:, None]
-        rigid, _ = np.linalg.qr(rigid)
-        basis = internal_basis(rigid)
-    else:
-        basis = np.eye(len(h_mw))
-    evals, evecs = np.linalg.eigh(basis.T @ h_mw @ basis)
-    return evals, basis @ evecs
 
 
 def ir_from_hessian(hessian: np.ndarray, structure: Structure) -> IRSpectrum:
