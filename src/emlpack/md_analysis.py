@@ -23,7 +23,6 @@ For one run with ``n_atoms`` nuclei (electron pairs are not atoms) and the conse
 
 from __future__ import annotations
 
-import io
 import json
 import math
 import os
@@ -33,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from emlpack._files import write_bytes_atomic, write_json_atomic
+from emlpack._files import write_figure_atomic, write_json_atomic
 from emlpack.errors import EmlpackError
 from emlpack.spectra import trajectory_file
 
@@ -341,10 +340,8 @@ def plot_conserved(
     if any(groups):
         ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=120)
+    write_figure_atomic(png_path, fig, dpi=120)
     plt.close(fig)
-    write_bytes_atomic(png_path, buffer.getvalue())
     return results
 
 
@@ -376,10 +373,8 @@ def plot_conserved_series(
     ax.set_ylabel(r"$E_\mathrm{cons}(t) - E_\mathrm{cons}(t_0)$ (eV per atom)")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=120)
+    write_figure_atomic(png_path, fig, dpi=120)
     plt.close(fig)
-    write_bytes_atomic(png_path, buffer.getvalue())
 
 
 # ------------------------------------------------------------------------------- commands

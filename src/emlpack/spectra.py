@@ -41,13 +41,13 @@ IR spectra from MD (the dipole time series ``mu(t_i)``, ``t_i = i dt``, ``n`` fr
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from ase.data import atomic_masses
 
+from emlpack._files import write_figure_atomic, write_json_atomic
 from emlpack.geometry import normal_modes
 from emlpack.nn.potential import EMLP
 from emlpack.response import born_oppenheimer_blocks, extended_hessian
@@ -154,7 +154,7 @@ def write_ir(
     if reference is not None:
         data["reference_frequencies_cm-1"] = np.asarray(reference[0]).tolist()
         data["reference_intensities_km_per_mol"] = np.asarray(reference[1]).tolist()
-    Path(json_path).write_text(json.dumps(data, indent=1))
+    write_json_atomic(json_path, data)
     if png_path is None:
         return
     import matplotlib
@@ -173,7 +173,7 @@ def write_ir(
     ax.set_ylabel("absorbance (km/mol per cm$^{-1}$)")
     ax.set_title(title or f"IR spectrum, Lorentzian FWHM {fwhm:g} cm$^{{-1}}$")
     fig.tight_layout()
-    fig.savefig(png_path, dpi=120)
+    write_figure_atomic(png_path, fig, dpi=120)
     plt.close(fig)
 
 
@@ -458,8 +458,6 @@ def write_dipole_ir(
     """Write the MD spectrum as JSON and optionally a PNG (both atomically), with the
     ``harmonic`` spectrum (an :class:`IRSpectrum` or (wavenumbers cm^-1, intensities km/mol);
     Lorentzians of ``fwhm``, default the MD resolution) overlaid."""
-    from emlpack._files import write_bytes_atomic, write_json_atomic
-
     data = spectrum.as_dict()
     fwhm = spectrum.resolution if fwhm is None else fwhm
     if isinstance(harmonic, IRSpectrum):
@@ -472,8 +470,6 @@ def write_dipole_ir(
     write_json_atomic(json_path, data)
     if png_path is None:
         return
-    import io
-
     import matplotlib
 
     matplotlib.use("Agg")
@@ -496,7 +492,5 @@ def write_dipole_ir(
     ax.set_title(title or f"IR from MD, {spectrum.temperature:.0f} K, resolution"
                  f" {spectrum.resolution:.0f} cm$^{{-1}}$")
     fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=120)
+    write_figure_atomic(png_path, fig, dpi=120)
     plt.close(fig)
-    write_bytes_atomic(png_path, buffer.getvalue())

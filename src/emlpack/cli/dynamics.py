@@ -131,8 +131,8 @@ def _write_atoms_only(trajectory, path) -> None:
     """The frames of ``trajectory`` without their ``Es`` rows (:func:`emlpack.io.split_pairs`)."""
     import ase.io
 
+    from emlpack._files import atomic_write
     from emlpack.io import split_pairs
-    from emlpack.io.extxyz import atomic_write
 
     frames = []
     for atoms in ase.io.read(trajectory, ":", format="extxyz"):
