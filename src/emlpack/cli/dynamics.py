@@ -192,7 +192,7 @@ def add_md_analysis(sub) -> None:
         positive(args.discard, "--discard", allow_zero=True)
         try:
             run_analysis(args.trajectories, args.plot, args.output, args.discard, args.groups,
-                         args.series)
+                         args.series, log=print)
         except ValueError as exc:  # the message names the file and frame
             raise InputError(str(exc)) from exc
         _add_settings(args.output, args)
@@ -227,7 +227,7 @@ def add_md_ir(sub) -> None:
         try:
             run_md_ir(args.trajectory, args.output, args.plot, args.harmonic,
                       args.temperature, args.discard, window=args.window,
-                      correction=args.correction, padding=args.padding)
+                      correction=args.correction, padding=args.padding, log=print)
         except ValueError as exc:  # too few frames, no dipoles: the message names the file
             raise InputError(str(exc)) from exc
         _add_settings(args.output, args)
