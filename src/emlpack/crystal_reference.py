@@ -47,10 +47,8 @@ from emlpack.errors import EmlpackError
 from emlpack.geometry import (
     STRAIN_BASIS,
     VOIGT,
+    VoigtViews,
     piezo_from_voigt,
-    strain_constants_voigt,
-    voigt_piezo,
-    voigt_stiffness,
     voigt_strain,
 )
 from emlpack.structure import PAIR_CHARGE, Structure
@@ -192,7 +190,7 @@ def fractional_dipole_change(reference: Structure, perturbed: Structure,
 
 # ---------------------------------------------------------------------- tensors
 @dataclass
-class ReferenceTensors:
+class ReferenceTensors(VoigtViews):
     """Finite-difference tensors (internal units: eV/Å³, e/Å², dimensionless).
 
     Attributes:
@@ -211,19 +209,6 @@ class ReferenceTensors:
     stress0: np.ndarray
     relaxed_ions: bool = False
     notes: dict = field(default_factory=dict)
-
-    @property
-    def stiffness_voigt(self) -> np.ndarray:
-        return voigt_stiffness(self.stiffness)
-
-    @property
-    def piezo_voigt(self) -> np.ndarray:
-        return voigt_piezo(self.piezo)
-
-    @property
-    def strain_constants_voigt(self) -> np.ndarray:
-        """d_iJ = e_iK (C^-1)_KJ (Å/V), engineering shear."""
-        return strain_constants_voigt(self.piezo_voigt, self.stiffness_voigt)
 
     def as_dict(self) -> dict:
         """Report units: GPa, C/m², pm/V."""

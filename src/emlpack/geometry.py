@@ -124,6 +124,31 @@ def piezo_from_voigt(e_voigt: np.ndarray, strain_like: bool = False) -> np.ndarr
     return out
 
 
+class VoigtViews:
+    """Voigt views of a class's ``stiffness`` C_ijkl (3x3x3x3) and proper ``piezo`` e_ijk
+    (3x3x3) tensors (mixin of the model's and the reference's crystal tensors)."""
+
+    @property
+    def stiffness_voigt(self) -> np.ndarray:
+        """C_IJ, 6x6."""
+        return voigt_stiffness(self.stiffness)
+
+    @property
+    def piezo_voigt(self) -> np.ndarray:
+        """e_iJ, 3x6."""
+        return voigt_piezo(self.piezo)
+
+    @property
+    def strain_constants_voigt(self) -> np.ndarray:
+        """d_iJ = e_iK (C^-1)_KJ, engineering shear (factor 2 on J = 4, 5, 6)."""
+        return strain_constants_voigt(self.piezo_voigt, self.stiffness_voigt)
+
+    @property
+    def strain_constants(self) -> np.ndarray:
+        """d_ijk as a tensor (shear components halved from Voigt)."""
+        return piezo_from_voigt(self.strain_constants_voigt, strain_like=True)
+
+
 # ---------------------------------------------------------------------- rigid-body projection
 def rigid_body_modes(positions, masses=None, rotations: bool = True, cell=None,
                      rtol: float = 1e-6) -> np.ndarray:

@@ -41,11 +41,10 @@ import numpy as np
 import torch
 
 from emlpack.geometry import (
+    VoigtViews,
     internal_basis,
-    piezo_from_voigt,
     rigid_body_modes,
     schur_complement,
-    strain_constants_voigt,
     voigt_piezo,
     voigt_stiffness,
 )
@@ -239,7 +238,7 @@ def improper_piezo(proper: np.ndarray, polarization: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class CrystalResponse:
+class CrystalResponse(VoigtViews):
     """Response tensors of a crystal in internal units (eV/Å³, e/Å², Å/V; dimensionless).
 
     Attributes:
@@ -253,6 +252,10 @@ class CrystalResponse:
         dielectric_relaxed: eps_ij with cores and pairs relaxed.
         piezo: proper e~_ijk (e/Å²), relaxed ions.
         piezo_clamped: proper e~_ijk with only the pairs relaxed.
+
+    Voigt views (:class:`emlpack.geometry.VoigtViews`): ``stiffness_voigt`` C_IJ (eV/Å³),
+    ``piezo_voigt`` e_iJ (e/Å²), ``strain_constants_voigt`` d_iJ (Å/V) and the tensor
+    ``strain_constants``.
     """
 
     volume: float
@@ -267,26 +270,6 @@ class CrystalResponse:
     @property
     def piezo_improper(self) -> np.ndarray:
         return improper_piezo(self.piezo, self.polarization)
-
-    @property
-    def stiffness_voigt(self) -> np.ndarray:
-        """C_IJ (eV/Å³)."""
-        return voigt_stiffness(self.stiffness)
-
-    @property
-    def piezo_voigt(self) -> np.ndarray:
-        """e_iJ (e/Å²)."""
-        return voigt_piezo(self.piezo)
-
-    @property
-    def strain_constants_voigt(self) -> np.ndarray:
-        """d_iJ = e_iK (C^-1)_KJ (Å/V), engineering shear (factor 2 on J = 4, 5, 6)."""
-        return strain_constants_voigt(self.piezo_voigt, self.stiffness_voigt)
-
-    @property
-    def strain_constants(self) -> np.ndarray:
-        """d_ijk (Å/V) as a tensor (shear components halved from Voigt)."""
-        return piezo_from_voigt(self.strain_constants_voigt, strain_like=True)
 
     def as_dict(self) -> dict:
         """All tensors in report units: GPa, C/m², pm/V (and dimensionless dielectric)."""
