@@ -57,7 +57,8 @@ def test_handle_writers_npz_and_kept_permissions(tmp_path):
 
 
 def test_figures_are_written_atomically_in_the_format_of_the_suffix(tmp_path):
-    matplotlib = pytest.importorskip("matplotlib")
+    import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

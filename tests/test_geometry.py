@@ -206,7 +206,8 @@ def test_schur_complement_is_the_relaxed_curvature():
 
 
 def test_cosine_cutoff_is_one_formula_for_numpy_and_torch():
-    torch = pytest.importorskip("torch")
+    import torch
+
     from emlpack.nn.schnet import cosine_cutoff as torch_cutoff
 
     r = np.linspace(0.0, 5.0, 101)
