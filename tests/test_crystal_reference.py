@@ -15,9 +15,10 @@ from emlpack.crystal_reference import (
     fractional_dipole_change,
     reference_tasks,
 )
+from emlpack.geometry import voigt_piezo, voigt_stiffness
 from emlpack.model_labeler import ModelLabeler
 from emlpack.optimize import optimize
-from emlpack.response import crystal_response, voigt_piezo, voigt_stiffness
+from emlpack.response import crystal_response
 from tests.nn.helpers import water_crystal
 from tests.response.toy import spring_model
 

@@ -54,3 +54,21 @@ def test_handle_writers_npz_and_kept_permissions(tmp_path):
         np.testing.assert_array_equal(d["x"], np.arange(4))
         assert str(d["s"]) == "text"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npz", "rows.csv"]
+
+
+def test_figures_are_written_atomically_in_the_format_of_the_suffix(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from emlpack._files import write_figure_atomic
+
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [1, 0])
+    write_figure_atomic(tmp_path / "a.png", fig)
+    write_figure_atomic(tmp_path / "a.svg", fig)
+    plt.close(fig)
+    assert (tmp_path / "a.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert b"<svg" in (tmp_path / "a.svg").read_bytes()[:1000]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "a.svg"]  # no temporaries

@@ -47,3 +47,19 @@ def test_bo_hessian_is_minus_derivative_of_bo_forces(setup):
             forces.append(lab(s.copy(positions=pos)).forces.reshape(-1))
         column = -(forces[0] - forces[1]) / (2 * step)
         np.testing.assert_allclose(h[: 3 * nc, k], column, atol=1e-5 * np.abs(h).max())
+
+
+def test_the_callers_model_is_neither_converted_nor_switched_to_eval(setup):
+    import copy
+
+    import torch
+
+    model, s = setup
+    m32 = copy.deepcopy(model).float().train()
+    lab = ModelLabeler(m32, fmax=1e-6)
+    assert lab.model is not m32 and next(lab.model.parameters()).dtype == torch.float64
+    assert not lab.model.training
+    bo_cell_hessian(m32, s, fmax=1e-6)
+    assert next(m32.parameters()).dtype == torch.float32 and m32.training
+    m64 = copy.deepcopy(model).double().eval()
+    assert ModelLabeler(m64).model is m64  # already float64 and in eval mode: no copy

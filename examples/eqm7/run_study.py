@@ -384,7 +384,7 @@ def harmonic_ir(hessian: np.ndarray, born: np.ndarray, numbers, positions) -> di
     Hessian (eV/Å²) and dipole derivatives dmu_a/dR_ib (3, 3N; e), as :mod:`emlpack.spectra`."""
     from ase.data import atomic_masses
 
-    from emlpack.spectra import normal_modes
+    from emlpack.geometry import normal_modes
     from emlpack.units import IR_KM_PER_MOL_PER_E2_AMU, WAVENUMBER_CM1_PER_SQRT_EV_A2_AMU
 
     masses = atomic_masses[np.asarray(numbers, dtype=int)]

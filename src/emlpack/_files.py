@@ -7,8 +7,9 @@ extended XYZ, JSON, NPZ, plots):
 * :func:`atomic_path` yields a temporary *path* for writers that want a file name
   (``torch.save``, ``np.savez``, h5py, ``shutil.copyfile``);
 * :func:`atomic_write` calls ``write(handle)`` on an open text or binary handle;
-* :func:`write_bytes_atomic`, :func:`write_text_atomic`, :func:`write_json_atomic` and
-  :func:`write_npz_atomic` write one value.
+* :func:`write_bytes_atomic`, :func:`write_text_atomic`, :func:`write_json_atomic`,
+  :func:`write_npz_atomic` and :func:`write_figure_atomic` (a matplotlib figure) write one
+  value.
 
 The file keeps the permissions of the file it replaces (a new one gets the umask's default),
 and a temporary file is never left behind.
@@ -30,6 +31,7 @@ __all__ = [
     "atomic_path",
     "atomic_write",
     "write_bytes_atomic",
+    "write_figure_atomic",
     "write_json_atomic",
     "write_npz_atomic",
     "write_text_atomic",
@@ -93,6 +95,13 @@ def write_npz_atomic(path: str | os.PathLike, compressed: bool = False, **arrays
     ``np.savez_compressed`` when ``compressed``), flushed to disk before the rename."""
     save = np.savez_compressed if compressed else np.savez
     atomic_write(path, lambda fh: save(fh, **arrays), binary=True)
+
+
+def write_figure_atomic(path: str | os.PathLike, figure, dpi: int = 120) -> None:
+    """Save a matplotlib ``figure`` to ``path`` atomically, in the format of its suffix
+    (``.png`` when it has none)."""
+    fmt = Path(path).suffix.lstrip(".").lower() or "png"
+    atomic_write(path, lambda fh: figure.savefig(fh, format=fmt, dpi=dpi), binary=True)
 
 
 def _file_mode(path: Path) -> int:

@@ -44,12 +44,12 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from emlpack.errors import EmlpackError
-from emlpack.response import (
+from emlpack.geometry import (
+    STRAIN_BASIS,
     VOIGT,
+    VoigtViews,
     piezo_from_voigt,
-    strain_constants_voigt,
-    voigt_piezo,
-    voigt_stiffness,
+    voigt_strain,
 )
 from emlpack.structure import PAIR_CHARGE, Structure
 from emlpack.units import (
@@ -61,11 +61,6 @@ from emlpack.units import (
 )
 
 Labeler = Callable[..., Structure]
-
-#: symmetric strain basis in Voigt order, engineering shear: eps = sum_J S_J B_J
-STRAIN_BASIS = np.zeros((6, 3, 3))
-for _k, (_i, _j) in enumerate(VOIGT):
-    STRAIN_BASIS[_k, _i, _j] = STRAIN_BASIS[_k, _j, _i] = 1.0 if _i == _j else 0.5
 
 _STENCILS = {
     2: (np.array([-1.0, 1.0]), np.array([-0.5, 0.5])),
@@ -113,7 +108,7 @@ class FDTask:
 
 def strain(structure: Structure, voigt_vector: np.ndarray) -> Structure:
     """Homogeneously strained copy: positions, pairs and cell times ``I + sum_J S_J B_J``."""
-    deform = np.eye(3) + np.einsum("k,kij->ij", np.asarray(voigt_vector, float), STRAIN_BASIS)
+    deform = np.eye(3) + voigt_strain(voigt_vector)
     return structure.copy(positions=structure.positions @ deform,
                           pairs=structure.pairs @ deform, cell=structure.cell @ deform)
 
@@ -195,7 +190,7 @@ def fractional_dipole_change(reference: Structure, perturbed: Structure,
 
 # ---------------------------------------------------------------------- tensors
 @dataclass
-class ReferenceTensors:
+class ReferenceTensors(VoigtViews):
     """Finite-difference tensors (internal units: eV/Å³, e/Å², dimensionless).
 
     Attributes:
@@ -214,19 +209,6 @@ class ReferenceTensors:
     stress0: np.ndarray
     relaxed_ions: bool = False
     notes: dict = field(default_factory=dict)
-
-    @property
-    def stiffness_voigt(self) -> np.ndarray:
-        return voigt_stiffness(self.stiffness)
-
-    @property
-    def piezo_voigt(self) -> np.ndarray:
-        return voigt_piezo(self.piezo)
-
-    @property
-    def strain_constants_voigt(self) -> np.ndarray:
-        """d_iJ = e_iK (C^-1)_KJ (Å/V), engineering shear."""
-        return strain_constants_voigt(self.piezo_voigt, self.stiffness_voigt)
 
     def as_dict(self) -> dict:
         """Report units: GPa, C/m², pm/V."""

@@ -32,7 +32,7 @@ from emlpack.data.references import (
 )
 from emlpack.errors import EmlpackError
 from emlpack.nn.checkpoint import load_model, read_checkpoint
-from emlpack.nn.potential import EMLP
+from emlpack.nn.potential import EMLP, for_evaluation
 
 
 class EnsembleError(EmlpackError, ValueError):
@@ -133,15 +133,10 @@ class ModelEnsemble:
         return sorted(set(np.asarray(numbers).tolist()) - known)
 
     def to(self, dtype: torch.dtype) -> ModelEnsemble:
-        """A copy with every model in ``dtype`` (the members given are not changed)."""
-        import copy
-
-        out = []
-        for m in self.members:
-            model = m.model if next(m.model.parameters()).dtype == dtype else \
-                copy.deepcopy(m.model).to(dtype)
-            out.append(ModelMember(model.eval(), m.reference, m.elements, m.source,
-                                   m._hydride_delta))
+        """A copy with every model in ``dtype`` and evaluation mode (the members given are not
+        changed)."""
+        out = [ModelMember(for_evaluation(m.model, dtype), m.reference, m.elements, m.source,
+                           m._hydride_delta) for m in self.members]
         return ModelEnsemble(out, self.name)
 
 

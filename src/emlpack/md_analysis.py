@@ -23,19 +23,21 @@ For one run with ``n_atoms`` nuclei (electron pairs are not atoms) and the conse
 
 from __future__ import annotations
 
-import io
 import json
+import logging
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from emlpack._files import write_bytes_atomic, write_json_atomic
+from emlpack._files import write_figure_atomic, write_json_atomic
 from emlpack.errors import EmlpackError
 from emlpack.spectra import trajectory_file
+
+logger = logging.getLogger(__name__)
 
 #: jump (eV per atom) below which a run is stable (paper)
 STABLE_MAX_JUMP = 5e-4
@@ -341,10 +343,8 @@ def plot_conserved(
     if any(groups):
         ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=120)
+    write_figure_atomic(png_path, fig, dpi=120)
     plt.close(fig)
-    write_bytes_atomic(png_path, buffer.getvalue())
     return results
 
 
@@ -376,10 +376,8 @@ def plot_conserved_series(
     ax.set_ylabel(r"$E_\mathrm{cons}(t) - E_\mathrm{cons}(t_0)$ (eV per atom)")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=120)
+    write_figure_atomic(png_path, fig, dpi=120)
     plt.close(fig)
-    write_bytes_atomic(png_path, buffer.getvalue())
 
 
 # ------------------------------------------------------------------------------- commands
@@ -390,11 +388,12 @@ def run_analysis(
     discard_steps: int = DISCARD_STEPS,
     groups: Sequence[str] | None = None,
     series: str | os.PathLike | None = None,
-    log=print,
+    log: Callable[[str], None] | None = None,
 ) -> list[ConservedAnalysis]:
-    """``emlp md-analysis``: analyse ``paths``, print one line each, write the scatter PNG,
-    the E_cons(t) plot (``series``) and a JSON ``{"runs": [as_dict(), ...]}`` (all
-    atomically) when asked."""
+    """``emlp md-analysis``: analyse ``paths``, report one line each to ``log`` (default: this
+    module's logger; the CLI prints), write the scatter PNG, the E_cons(t) plot (``series``)
+    and a JSON ``{"runs": [as_dict(), ...]}`` (all atomically) when asked."""
+    log = log or logger.info
     results = [analyze_trajectory(p, discard_steps) for p in paths]
     for r in results:
         log(r.text())
@@ -418,12 +417,14 @@ def run_md_ir(
     harmonic_json: str | os.PathLike | None = None,
     temperature: float | None = None,
     discard_steps: int = 0,
-    log=print,
+    log: Callable[[str], None] | None = None,
     **options,
 ):
     """``emlp md-ir``: IR spectrum from the dipole ACF of an ``emlp md`` trajectory (see
     :func:`emlpack.spectra.ir_from_trajectory`), optionally overlaid with the harmonic spectrum
-    of an ``emlp ir`` JSON (``frequencies_cm-1``, ``intensities_km_per_mol``)."""
+    of an ``emlp ir`` JSON (``frequencies_cm-1``, ``intensities_km_per_mol``); the summary
+    goes to ``log`` (default: this module's logger; the CLI prints)."""
+    log = log or logger.info
     from emlpack.spectra import ir_from_trajectory, write_dipole_ir
 
     spec = ir_from_trajectory(path, temperature, discard_steps, **options)

@@ -21,9 +21,9 @@ import numpy as np
 import torch
 
 from emlpack.errors import EmlpackError
-from emlpack.nn.potential import EMLP
+from emlpack.geometry import schur_complement
+from emlpack.nn.potential import EMLP, for_evaluation
 from emlpack.relax import RelaxOptions, relax_pairs
-from emlpack.response import schur_complement
 from emlpack.structure import Structure
 
 
@@ -42,7 +42,7 @@ class ModelLabeler:
 
     def __init__(self, model: EMLP, fmax: float = 1e-8, level: str = "emlp",
                  max_iterations: int = 200) -> None:
-        self.model = model.double().eval()
+        self.model = for_evaluation(model, torch.float64)  # the caller's model is not changed
         self.options = RelaxOptions(fmax=fmax, max_iterations=max_iterations)
         self.level = level
 
@@ -86,7 +86,7 @@ def cartesian_cell_hessian(model: EMLP, structure: Structure) -> np.ndarray:
 def bo_cell_hessian(model: EMLP, structure: Structure, fmax: float = 1e-6) -> np.ndarray:
     """Born-Oppenheimer Hessian (eV/Å²) in (core positions, cell), shape (3n_c+9, 3n_c+9):
     pairs relaxed at ``structure``'s cores and then eliminated (Schur complement)."""
-    model = model.double()
+    model = for_evaluation(model, torch.float64)
     result = relax_pairs(model, structure, RelaxOptions(fmax=fmax))[0]
     if result.failed:
         raise ModelLabelingError(f"{structure.source}: pair relaxation failed: {result.reason}")

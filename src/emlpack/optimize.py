@@ -27,17 +27,11 @@ import numpy as np
 import scipy.optimize
 from ase.geometry import cell_to_cellpar
 
+from emlpack.geometry import STRAIN_BASIS, internal_basis, rigid_body_modes, voigt_strain
 from emlpack.nn.potential import EMLP
-from emlpack.response import extended_gradient, extended_hessian, internal_basis
-from emlpack.response import rigid_body_modes as _rigid_body_modes
+from emlpack.response import extended_gradient, extended_hessian
 from emlpack.structure import Structure
 from emlpack.units import EV_PER_A3_IN_GPA
-
-#: symmetric strain basis (engineering shear): eps = sum_I S_I B_I
-_STRAIN_BASIS = np.zeros((6, 3, 3))
-for _k, (_i, _j) in enumerate(((0, 0), (1, 1), (2, 2), (1, 2), (0, 2), (0, 1))):
-    _STRAIN_BASIS[_k, _i, _j] += 0.5 if _i != _j else 1.0
-    _STRAIN_BASIS[_k, _j, _i] += 0.5 if _i != _j else 0.0
 
 
 @dataclass
@@ -95,7 +89,7 @@ class _Problem:
         pos = s.all_positions + x[: 3 * n].reshape(n, 3)
         cell = s.cell
         if self.cell:
-            deform = np.eye(3) + np.einsum("k,kij->ij", x[3 * n :], _STRAIN_BASIS)
+            deform = np.eye(3) + voigt_strain(x[3 * n :])
             pos, cell = pos @ deform, cell @ deform
         return s.copy(positions=pos[: s.n_cores], pairs=pos[s.n_cores :], cell=cell)
 
@@ -108,7 +102,7 @@ class _Problem:
         jac[: 3 * n, : 3 * n] = np.kron(np.eye(n), np.linalg.inv(s.cell).T)
         if self.cell:
             for k in range(6):
-                jac[3 * n :, 3 * n + k] = (s.cell @ _STRAIN_BASIS[k]).reshape(-1)
+                jac[3 * n :, 3 * n + k] = (s.cell @ STRAIN_BASIS[k]).reshape(-1)
         return jac
 
     def gradient(self, s: Structure) -> np.ndarray:
@@ -127,7 +121,7 @@ class _Problem:
 
     def basis(self, s: Structure) -> np.ndarray:
         n = s.n_cores + s.n_pairs
-        rigid = _rigid_body_modes(s.all_positions, rotations=not s.pbc)
+        rigid = rigid_body_modes(s.all_positions, rotations=not s.pbc)
         q = internal_basis(rigid)
         if not self.cell:
             return q

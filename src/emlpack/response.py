@@ -38,9 +38,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 import torch
 
+from emlpack.geometry import (
+    VoigtViews,
+    internal_basis,
+    rigid_body_modes,
+    schur_complement,
+    voigt_piezo,
+    voigt_stiffness,
+)
 from emlpack.nn.potential import EMLP
 from emlpack.structure import Structure
 from emlpack.units import (
@@ -52,9 +59,6 @@ from emlpack.units import (
     EV_PER_A3_IN_GPA,
     POLARIZABILITY_A3_IN_BOHR3,
 )
-
-#: Voigt index pairs: xx yy zz yz xz xy
-VOIGT = ((0, 0), (1, 1), (2, 2), (1, 2), (0, 2), (0, 1))
 
 
 # ---------------------------------------------------------------------- extended Hessian
@@ -125,43 +129,6 @@ def extended_hessian(
         hess[k] = row.detach()
     hess[n_rows:, :n_rows] = hess[:n_rows, n_rows:].T
     return grad.detach(), hess
-
-
-# ---------------------------------------------------------------------- Schur complements
-def schur_complement(
-    hessian: np.ndarray,
-    keep: np.ndarray,
-    eliminate: np.ndarray,
-    basis: np.ndarray | None = None,
-) -> np.ndarray:
-    """``H_kk - H_ke B (B^T H_ee B)^-1 B^T H_ek``: second derivatives in ``keep`` with the
-    ``eliminate`` variables relaxed within the span of ``basis`` (columns; default: all)."""
-    h = np.asarray(hessian, dtype=float)
-    h = 0.5 * (h + h.T)
-    h_kk = h[np.ix_(keep, keep)]
-    h_ke = h[np.ix_(keep, eliminate)]
-    h_ee = h[np.ix_(eliminate, eliminate)]
-    if basis is not None:
-        h_ke = h_ke @ basis
-        h_ee = basis.T @ h_ee @ basis
-    return h_kk - h_ke @ np.linalg.solve(h_ee, h_ke.T)
-
-
-def rigid_body_modes(positions: np.ndarray, rotations: bool = True) -> np.ndarray:
-    """Orthonormal columns spanning the rigid translations (and rotations about the centroid)
-    of particles at ``positions`` (N, 3), in the flattened 3N coordinates; rank 5 when linear."""
-    n = len(positions)
-    vecs = [np.tile(np.eye(3)[a], n) for a in range(3)]
-    if rotations:
-        r = positions - positions.mean(axis=0)
-        vecs += [np.cross(np.eye(3)[a], r).reshape(-1) for a in range(3)]
-    u, sv, _ = np.linalg.svd(np.array(vecs).T, full_matrices=False)
-    return u[:, sv > 1e-8 * sv[0]]
-
-
-def internal_basis(rigid: np.ndarray) -> np.ndarray:
-    """Orthonormal basis of the complement of the columns of ``rigid``."""
-    return scipy.linalg.null_space(rigid.T)
 
 
 # ---------------------------------------------------------------------- molecules
@@ -263,34 +230,6 @@ def molecule_response(
 
 
 # ---------------------------------------------------------------------- crystals
-def voigt_stiffness(c: np.ndarray) -> np.ndarray:
-    """6x6 Voigt matrix of a 3x3x3x3 stiffness, symmetrised over ij, kl and (ij)<->(kl)."""
-    c = 0.25 * (c + c.transpose(1, 0, 2, 3) + c.transpose(0, 1, 3, 2) + c.transpose(1, 0, 3, 2))
-    out = np.array([[c[i, j, k, l] for (k, l) in VOIGT] for (i, j) in VOIGT])
-    return 0.5 * (out + out.T)
-
-
-def voigt_piezo(e: np.ndarray) -> np.ndarray:
-    """3x6 Voigt matrix ``e_iJ = (e_ijk + e_ikj)/2`` of a 3x3x3 piezoelectric tensor."""
-    return np.array([[0.5 * (e[i, j, k] + e[i, k, j]) for (j, k) in VOIGT] for i in range(3)])
-
-
-def strain_constants_voigt(e_voigt: np.ndarray, c_voigt: np.ndarray) -> np.ndarray:
-    """Piezoelectric strain constants ``d = e : C^-1`` in Voigt form (engineering shear):
-    e_iJ (e/Å²) and C_IJ (eV/Å³) give d_iJ in Å/V."""
-    return np.asarray(e_voigt) @ np.linalg.inv(c_voigt)
-
-
-def piezo_from_voigt(e_voigt: np.ndarray, strain_like: bool = False) -> np.ndarray:
-    """3x3x3 tensor from a 3x6 Voigt matrix; ``strain_like`` halves the shear components
-    (for ``d``, whose Voigt shears carry the engineering factor 2)."""
-    out = np.zeros((3, 3, 3))
-    for big, (j, k) in enumerate(VOIGT):
-        factor = 0.5 if strain_like and j != k else 1.0
-        out[:, j, k] = out[:, k, j] = factor * e_voigt[:, big]
-    return out
-
-
 def improper_piezo(proper: np.ndarray, polarization: np.ndarray) -> np.ndarray:
     """Improper ``e_ijk = e~_ijk - delta_jk P_i + delta_ik P_j`` (e/Å², P in e/Å²)."""
     eye = np.eye(3)
@@ -299,7 +238,7 @@ def improper_piezo(proper: np.ndarray, polarization: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class CrystalResponse:
+class CrystalResponse(VoigtViews):
     """Response tensors of a crystal in internal units (eV/Å³, e/Å², Å/V; dimensionless).
 
     Attributes:
@@ -313,6 +252,10 @@ class CrystalResponse:
         dielectric_relaxed: eps_ij with cores and pairs relaxed.
         piezo: proper e~_ijk (e/Å²), relaxed ions.
         piezo_clamped: proper e~_ijk with only the pairs relaxed.
+
+    Voigt views (:class:`emlpack.geometry.VoigtViews`): ``stiffness_voigt`` C_IJ (eV/Å³),
+    ``piezo_voigt`` e_iJ (e/Å²), ``strain_constants_voigt`` d_iJ (Å/V) and the tensor
+    ``strain_constants``.
     """
 
     volume: float
@@ -327,26 +270,6 @@ class CrystalResponse:
     @property
     def piezo_improper(self) -> np.ndarray:
         return improper_piezo(self.piezo, self.polarization)
-
-    @property
-    def stiffness_voigt(self) -> np.ndarray:
-        """C_IJ (eV/Å³)."""
-        return voigt_stiffness(self.stiffness)
-
-    @property
-    def piezo_voigt(self) -> np.ndarray:
-        """e_iJ (e/Å²)."""
-        return voigt_piezo(self.piezo)
-
-    @property
-    def strain_constants_voigt(self) -> np.ndarray:
-        """d_iJ = e_iK (C^-1)_KJ (Å/V), engineering shear (factor 2 on J = 4, 5, 6)."""
-        return strain_constants_voigt(self.piezo_voigt, self.stiffness_voigt)
-
-    @property
-    def strain_constants(self) -> np.ndarray:
-        """d_ijk (Å/V) as a tensor (shear components halved from Voigt)."""
-        return piezo_from_voigt(self.strain_constants_voigt, strain_like=True)
 
     def as_dict(self) -> dict:
         """All tensors in report units: GPa, C/m², pm/V (and dimensionless dielectric)."""

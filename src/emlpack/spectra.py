@@ -41,20 +41,16 @@ IR spectra from MD (the dipole time series ``mu(t_i)``, ``t_i = i dt``, ``n`` fr
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from ase.data import atomic_masses
 
+from emlpack._files import write_figure_atomic, write_json_atomic
+from emlpack.geometry import normal_modes
 from emlpack.nn.potential import EMLP
-from emlpack.response import (
-    born_oppenheimer_blocks,
-    extended_hessian,
-    internal_basis,
-    rigid_body_modes,
-)
+from emlpack.response import born_oppenheimer_blocks, extended_hessian
 from emlpack.structure import Structure
 from emlpack.units import (
     BOLTZMANN_EV_K,
@@ -121,27 +117,6 @@ def lorentzian(grid: np.ndarray, centres: np.ndarray, heights: np.ndarray, fwhm:
     return (np.asarray(heights)[None, :] * (g / np.pi) / (d * d + g * g)).sum(axis=1)
 
 
-def normal_modes(
-    hessian: np.ndarray, positions: np.ndarray, masses: np.ndarray, project: bool = True
-) -> tuple[np.ndarray, np.ndarray]:
-    """Eigenvalues (eV/(Å² amu)) and mass-weighted eigenvectors (3N, n_modes) of a Cartesian
-    Hessian, with rigid translations/rotations projected out when ``project``."""
-    w = 1.0 / np.sqrt(np.repeat(masses, 3))
-    h_mw = w[:, None] * 0.5 * (hessian + hessian.T) * w[None, :]
-    if project:
-        sqrt_m = np.sqrt(np.repeat(masses, 3))
-        # rigid modes in mass-weighted coordinates: sqrt(m_i) times the Cartesian ones about
-        # the centre of mass
-        com = masses @ positions / masses.sum()
-        rigid = rigid_body_modes(positions - com) * sqrt_m[:, None]
-        rigid, _ = np.linalg.qr(rigid)
-        basis = internal_basis(rigid)
-    else:
-        basis = np.eye(len(h_mw))
-    evals, evecs = np.linalg.eigh(basis.T @ h_mw @ basis)
-    return evals, basis @ evecs
-
-
 def ir_from_hessian(hessian: np.ndarray, structure: Structure) -> IRSpectrum:
     """:class:`IRSpectrum` from the molecular extended Hessian of ``structure``."""
     if structure.pbc:
@@ -179,7 +154,7 @@ def write_ir(
     if reference is not None:
         data["reference_frequencies_cm-1"] = np.asarray(reference[0]).tolist()
         data["reference_intensities_km_per_mol"] = np.asarray(reference[1]).tolist()
-    Path(json_path).write_text(json.dumps(data, indent=1))
+    write_json_atomic(json_path, data)
     if png_path is None:
         return
     import matplotlib
@@ -198,7 +173,7 @@ def write_ir(
     ax.set_ylabel("absorbance (km/mol per cm$^{-1}$)")
     ax.set_title(title or f"IR spectrum, Lorentzian FWHM {fwhm:g} cm$^{{-1}}$")
     fig.tight_layout()
-    fig.savefig(png_path, dpi=120)
+    write_figure_atomic(png_path, fig, dpi=120)
     plt.close(fig)
 
 
@@ -483,8 +458,6 @@ def write_dipole_ir(
     """Write the MD spectrum as JSON and optionally a PNG (both atomically), with the
     ``harmonic`` spectrum (an :class:`IRSpectrum` or (wavenumbers cm^-1, intensities km/mol);
     Lorentzians of ``fwhm``, default the MD resolution) overlaid."""
-    from emlpack._files import write_bytes_atomic, write_json_atomic
-
     data = spectrum.as_dict()
     fwhm = spectrum.resolution if fwhm is None else fwhm
     if isinstance(harmonic, IRSpectrum):
@@ -497,8 +470,6 @@ def write_dipole_ir(
     write_json_atomic(json_path, data)
     if png_path is None:
         return
-    import io
-
     import matplotlib
 
     matplotlib.use("Agg")
@@ -521,7 +492,5 @@ def write_dipole_ir(
     ax.set_title(title or f"IR from MD, {spectrum.temperature:.0f} K, resolution"
                  f" {spectrum.resolution:.0f} cm$^{{-1}}$")
     fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=120)
+    write_figure_atomic(png_path, fig, dpi=120)
     plt.close(fig)
-    write_bytes_atomic(png_path, buffer.getvalue())

@@ -6,9 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from emlpack.data.augment import AugmentationConfig, augment, minimum_image
+from emlpack.data.augment import AugmentationConfig, augment
 from emlpack.data.dataset import Collater
 from emlpack.data.references import ConstantReference
+from emlpack.geometry import minimum_image
 from emlpack.io import read_structures
 from emlpack.structure import Structure
 from emlpack.units import AUGMENTATION_K_EV_A2, HARTREE

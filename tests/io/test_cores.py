@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from ase import Atoms
 
+from emlpack.geometry import minimum_image_distances
 from emlpack.io import (
     find_core_centres,
-    minimum_image_distances,
     read_structures,
     split_core_centres,
     write_structures,

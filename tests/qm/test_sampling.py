@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from emlpack.geometry import rigid_body_modes
 from emlpack.qm.sampling import (
     PROBES,
     SamplingError,
@@ -15,7 +16,6 @@ from emlpack.qm.sampling import (
     normal_mode_sample,
     normal_modes,
     random_field,
-    rigid_body_basis,
     torsion_sample,
 )
 from emlpack.units import BOLTZMANN_EV_K, FIELD_AU_IN_V_PER_A
@@ -27,7 +27,7 @@ def _synthetic_hessian(positions, seed=0):
     n = 3 * len(positions)
     a = rng.normal(size=(n, n))
     a = a @ a.T / n * 20.0 + 5.0 * np.eye(n)
-    q = rigid_body_basis(positions)  # unweighted rigid-body directions
+    q = rigid_body_modes(positions)  # unweighted rigid-body directions
     p = np.eye(n) - q @ q.T
     return p @ a @ p
 

@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from emlpack.optimize import _STRAIN_BASIS, optimize
+from emlpack.geometry import STRAIN_BASIS, VOIGT
+from emlpack.optimize import optimize
 from emlpack.relax import relax_pairs
 from emlpack.response import (
-    VOIGT,
     crystal_response_from_hessian,
     extended_gradient,
     extended_hessian,
@@ -40,7 +40,7 @@ def crystal():
 
 
 def _strained(s, voigt_vector):
-    deform = np.eye(3) + np.einsum("k,kij->ij", voigt_vector, _STRAIN_BASIS)
+    deform = np.eye(3) + np.einsum("k,kij->ij", voigt_vector, STRAIN_BASIS)
     return s.copy(positions=s.positions @ deform, pairs=s.pairs @ deform, cell=s.cell @ deform)
 
 
@@ -83,7 +83,7 @@ def strained_states(crystal):
             st = res.structure
             g_cell = extended_gradient(model, st).numpy()[3 * n : 3 * n + 9].reshape(3, 3)
             # E(S) = E(s*, A0 (I + eps(S))): dE/dS_I = sum_mk g_A[m,k] (A0 B_I)[m,k]
-            de_ds = np.array([np.sum(g_cell * (s.cell @ b)) for b in _STRAIN_BASIS])
+            de_ds = np.array([np.sum(g_cell * (s.cell @ b)) for b in STRAIN_BASIS])
             out[big, o] = (de_ds, st.dipole(), st.volume)
     return out
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from scipy.special import erf
 
+from emlpack.geometry import normal_modes
 from emlpack.optimize import optimize
 from emlpack.relax import relax_pairs
 from emlpack.response import (
@@ -15,7 +16,7 @@ from emlpack.response import (
     molecule_response,
     polarizability_from_hessian,
 )
-from emlpack.spectra import ir_from_hessian, lorentzian, normal_modes
+from emlpack.spectra import ir_from_hessian, lorentzian
 from emlpack.units import COULOMB_EV_A, REFERENCE_GAMMA
 from tests.nn.helpers import STENCIL_OFFSETS, STENCIL_WEIGHTS, water_molecule
 from tests.response.toy import spring_model, toy_atom, toy_atom_polarizability

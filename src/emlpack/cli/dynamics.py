@@ -129,8 +129,8 @@ def _write_atoms_only(trajectory, path) -> None:
     """The frames of ``trajectory`` without their ``Es`` rows (:func:`emlpack.io.split_pairs`)."""
     import ase.io
 
+    from emlpack._files import atomic_write
     from emlpack.io import split_pairs
-    from emlpack.io.extxyz import atomic_write
 
     frames = []
     for atoms in ase.io.read(trajectory, ":", format="extxyz"):
@@ -190,7 +190,7 @@ def add_md_analysis(sub) -> None:
         positive(args.discard, "--discard", allow_zero=True)
         try:
             run_analysis(args.trajectories, args.plot, args.output, args.discard, args.groups,
-                         args.series)
+                         args.series, log=print)
         except ValueError as exc:  # the message names the file and frame
             raise InputError(str(exc)) from exc
         _add_settings(args.output, args)
@@ -225,7 +225,7 @@ def add_md_ir(sub) -> None:
         try:
             run_md_ir(args.trajectory, args.output, args.plot, args.harmonic,
                       args.temperature, args.discard, window=args.window,
-                      correction=args.correction, padding=args.padding)
+                      correction=args.correction, padding=args.padding, log=print)
         except ValueError as exc:  # too few frames, no dipoles: the message names the file
             raise InputError(str(exc)) from exc
         _add_settings(args.output, args)

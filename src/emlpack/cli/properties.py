@@ -227,6 +227,7 @@ def add_optimize(sub) -> None:
     def run(args):
         import ase.io
 
+        from emlpack._files import atomic_write
         from emlpack.io import split_pairs, structure_to_atoms, write_structures
 
         prep = prepare(args, None, "emlp optimize")
@@ -237,7 +238,7 @@ def add_optimize(sub) -> None:
                 atoms = split_pairs(structure_to_atoms(s))
                 atoms.info.pop("electron_pairs", None)
                 frames.append(atoms)
-            ase.io.write(out, frames, format="extxyz")
+            atomic_write(out, lambda fh: ase.io.write(fh, frames, format="extxyz"))
         else:
             write_structures(out, prep.structures)  # with an ensemble: one frame per member
         data = {**prep.energies(), "numbers": prep.structure.numbers.tolist()}

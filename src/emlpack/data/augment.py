@@ -33,6 +33,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from emlpack.geometry import cosine_cutoff, minimum_image
 from emlpack.structure import PAIR_CHARGE, Structure
 from emlpack.units import AUGMENTATION_K_EV_A2
 
@@ -62,25 +63,6 @@ class AugmentationInfo:
     skipped: bool = False
     pair: int = -1
     displacement: np.ndarray | None = None
-
-
-def cutoff_function(r: np.ndarray, cutoff: float, transition: float) -> np.ndarray:
-    """The model's cutoff function: 1 below ``cutoff - transition``, cosine to 0 at cutoff."""
-    x = np.clip((r - (cutoff - transition)) / transition, 0.0, 1.0)
-    return 0.5 * (1.0 + np.cos(math.pi * x))
-
-
-def minimum_image(d: np.ndarray, cell: np.ndarray) -> np.ndarray:
-    """Shortest periodic images of the vectors ``d`` (n, 3) for lattice rows ``cell``.
-
-    Wraps to the fractional range [-0.5, 0.5), then searches the 27 neighbouring images, which
-    is exact for any cell that is not extremely skewed."""
-    frac = d @ np.linalg.inv(cell)
-    frac -= np.round(frac)
-    shifts = np.array([[a, b, c] for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)])
-    cand = (frac[:, None, :] + shifts[None]) @ cell  # (n, 27, 3)
-    best = np.argmin((cand * cand).sum(-1), axis=1)
-    return cand[np.arange(len(d)), best]
 
 
 def compensating_forces(
@@ -147,7 +129,7 @@ def augment(
     if s.pbc:
         rel = minimum_image(rel, s.cell)
     r = np.sqrt((rel * rel).sum(-1))
-    weights = cutoff_function(r, config.cutoff, config.cutoff_transition) / np.maximum(r, 1e-2) ** 2
+    weights = cosine_cutoff(r, config.cutoff, config.cutoff_transition) / np.maximum(r, 1e-2) ** 2
     weights[k] = 0.0
     if weights.sum() <= 0.0:
         info.skipped = True

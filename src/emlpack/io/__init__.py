@@ -10,7 +10,6 @@ from emlpack.io.ase_convert import atoms_to_structure, split_pairs, structure_to
 from emlpack.io.cores import (
     CORE_TOLERANCE,
     find_core_centres,
-    minimum_image_distances,
     split_core_centres,
 )
 from emlpack.io.extxyz import (
@@ -27,7 +26,6 @@ __all__ = [
     "atoms_to_structure",
     "find_core_centres",
     "iread_structures",
-    "minimum_image_distances",
     "read_frame_atoms",
     "read_structures",
     "split_core_centres",

@@ -12,38 +12,13 @@ the tolerance is never removed, and two cores claiming the same centre is an err
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 
+from emlpack.geometry import minimum_image_distances
 from emlpack.structure import StructureError, core_charges, n_core_pairs
 
 #: default distance (Å) within which a centre counts as a core centre of a nucleus
 CORE_TOLERANCE = 0.01
-
-IMAGE_SHIFTS = np.array(list(itertools.product((-1, 0, 1), repeat=3)), dtype=np.float64)
-
-
-def minimum_image_distances(
-    points: np.ndarray, centres: np.ndarray, cell: np.ndarray | None = None, pbc: bool = False
-) -> np.ndarray:
-    """Distances (Å) between every point and every centre, shape (n_points, n_centres).
-
-    Under ``pbc`` the distance is to the nearest periodic image of the centre (``cell`` rows are
-    the lattice vectors, Å); exact for any triclinic cell, as the 27 images around the
-    fractional-wrapped vector are searched.
-    """
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
-    diff = centres[None, :, :] - points[:, None, :]
-    if not pbc:
-        return np.linalg.norm(diff, axis=-1)
-    cell = np.asarray(cell, dtype=np.float64).reshape(3, 3)
-    frac = diff @ np.linalg.inv(cell)
-    frac -= np.round(frac)
-    wrapped = frac @ cell
-    images = wrapped[:, :, None, :] + (IMAGE_SHIFTS @ cell)[None, None, :, :]
-    return np.linalg.norm(images, axis=-1).min(axis=-1)
 
 
 def find_core_centres(

@@ -15,6 +15,7 @@ derivative is returned as ``virial_including_field`` for the extended Hessian's 
 
 from __future__ import annotations
 
+import copy
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -226,3 +227,11 @@ class EMLP(nn.Module):
 
     def n_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())
+
+
+def for_evaluation(model: EMLP, dtype: torch.dtype = torch.float64) -> EMLP:
+    """``model`` in ``dtype`` and evaluation mode: ``model`` itself when it already is, else a
+    copy (the caller's model is never converted or switched to eval in place)."""
+    if not model.training and next(model.parameters()).dtype == dtype:
+        return model
+    return copy.deepcopy(model).to(dtype).eval()

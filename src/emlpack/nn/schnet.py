@@ -24,6 +24,8 @@ import math
 import torch
 from torch import nn
 
+from emlpack import geometry
+
 LN2 = math.log(2.0)
 
 
@@ -33,10 +35,9 @@ def shifted_softplus(x: torch.Tensor) -> torch.Tensor:
 
 
 def cosine_cutoff(r: torch.Tensor, cutoff: float, transition: float) -> torch.Tensor:
-    """1 below ``cutoff - transition``, cosine switch to 0 at ``cutoff`` (Å)."""
-    start = cutoff - transition
-    x = torch.clamp((r - start) / transition, 0.0, 1.0)
-    return 0.5 * (1.0 + torch.cos(math.pi * x))
+    """1 below ``cutoff - transition``, cosine switch to 0 at ``cutoff`` (Å): the formula of
+    :func:`emlpack.geometry.cosine_cutoff` on tensors."""
+    return geometry.cosine_cutoff(r, cutoff, transition, xp=torch)
 
 
 def convolve(a: torch.Tensor, w: torch.Tensor, i: torch.Tensor, j: torch.Tensor) -> torch.Tensor:

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from emlpack._files import atomic_path
-from emlpack.io.cores import IMAGE_SHIFTS
+from emlpack.geometry import minimum_image
 from emlpack.qm.pyscf_labeler import LabelingError
 from emlpack.structure import Structure, core_charges
 from emlpack.units import ANGSTROM_IN_BOHR, EV_PER_A3_IN_GPA, FIELD_AU_IN_V_PER_A, HARTREE
@@ -384,21 +384,13 @@ def map_centres_to_cores(centres: np.ndarray, positions: np.ndarray,
     """Move each centre to the periodic image nearest to its closest core (Å).
 
     Returns ``(mapped, nearest_core)``; the distance to the closest core is minimum-image
-    (exact for triclinic cells: 27 images around the fractional-wrapped vector).
+    (:func:`emlpack.geometry.minimum_image`, exact for any triclinic cell).
     """
     centres = np.asarray(centres, dtype=float).reshape(-1, 3)
     positions = np.asarray(positions, dtype=float).reshape(-1, 3)
-    diff = centres[:, None, :] - positions[None, :, :]  # (n_c, n_a, 3)
-    frac = diff @ np.linalg.inv(cell)
-    frac -= np.round(frac)
-    images = (frac @ cell)[:, :, None, :] + (IMAGE_SHIFTS @ cell)[None, None, :, :]
-    dist = np.linalg.norm(images, axis=-1)  # (n_c, n_a, 27)
-    best_img = dist.argmin(axis=-1)
-    best_dist = np.take_along_axis(dist, best_img[..., None], axis=-1)[..., 0]
-    core = best_dist.argmin(axis=1)
-    idx = np.arange(len(centres))
-    vec = images[idx, core, best_img[idx, core]]
-    return positions[core] + vec, core
+    vec = minimum_image(centres[:, None, :] - positions[None, :, :], cell)  # (n_c, n_a, 3)
+    core = np.linalg.norm(vec, axis=-1).argmin(axis=1)
+    return positions[core] + vec[np.arange(len(centres)), core], core
 
 
 # ---------------------------------------------------------------------------------- labeler

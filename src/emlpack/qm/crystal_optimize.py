@@ -16,6 +16,7 @@ the interrupted run stopped.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +32,8 @@ from emlpack.structure import Structure
 from emlpack.units import EV_PER_A3_IN_GPA
 
 Labeler = Callable[..., Structure]
+
+logger = logging.getLogger(__name__)
 
 
 class CrystalOptimizationError(EmlpackError, RuntimeError):
@@ -137,8 +140,8 @@ def symmetrized_start(structure: Structure, symprec: float) -> Structure:
 def optimize_crystal(labeler: Labeler, structure: Structure, *, fmax: float = 0.01,
                      max_steps: int = 100, cell: bool = True, symprec: float | None = 0.01,
                      maxstep: float = 0.1, store_path: str | Path | None = None,
-                     prefix: str = "opt", level: str = "", log: Callable[[str], None] = print
-                     ) -> CrystalOptimization:
+                     prefix: str = "opt", level: str = "",
+                     log: Callable[[str], None] | None = None) -> CrystalOptimization:
     """BFGS optimisation of positions (and cell, ``cell=True``) at zero field and pressure.
 
     Args:
@@ -152,11 +155,13 @@ def optimize_crystal(labeler: Labeler, structure: Structure, *, fmax: float = 0.
         store_path: HDF5 store receiving every labeled step as ``{prefix}/NNN`` (kind
             ``stress``; numbered on from the records already there); stored geometries are
             replayed instead of recomputed.
-        level, log: level-of-theory text for the records; progress messages.
+        level: level-of-theory text for the records.
+        log: receives the progress messages (default: this module's logger, INFO).
     """
     from ase.filters import FrechetCellFilter
     from ase.optimize import BFGS
 
+    log = log or logger.info
     if not structure.pbc:
         raise CrystalOptimizationError(f"{structure.source}: a crystal optimisation needs a"
                                        " periodic structure")

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from emlpack import geometry
 from emlpack.errors import EmlpackError
 from emlpack.units import BOLTZMANN_EV_K, FIELD_AU_IN_V_PER_A
 
@@ -167,41 +168,11 @@ def masses_of(numbers) -> np.ndarray:
     return atomic_masses[np.asarray(numbers)]
 
 
-def rigid_body_basis(positions: np.ndarray, masses: np.ndarray | None = None) -> np.ndarray:
-    """Orthonormal basis (3n, k<=6) of translations and rotations in mass-weighted coordinates."""
-    n = len(positions)
-    sqm = np.ones(n) if masses is None else np.sqrt(masses)
-    com = (sqm**2 @ positions) / np.sum(sqm**2)
-    r = positions - com
-    vecs = []
-    for axis in np.eye(3):
-        vecs.append((sqm[:, None] * axis[None, :]).ravel())
-    for axis in np.eye(3):
-        vecs.append((sqm[:, None] * np.cross(axis, r)).ravel())
-    basis = np.array(vecs).T
-    u, s, _ = np.linalg.svd(basis, full_matrices=False)
-    return u[:, s > 1e-6 * s.max()]
-
-
 def normal_modes(numbers, positions, hessian) -> tuple[np.ndarray, np.ndarray]:
-    """Vibrational modes from a Cartesian Hessian (eV/Å^2).
-
-    Returns ``(k, modes)``: mass-weighted force constants ``omega^2`` (eV/(Å^2 amu)), shape
-    (n_vib,), and mass-weighted orthonormal eigenvectors, shape (3n, n_vib). The rigid-body
-    modes are projected out before diagonalisation.
-    """
-    m = masses_of(numbers)
-    inv_sqm = np.repeat(1.0 / np.sqrt(m), 3)
-    h = np.asarray(hessian, dtype=float)
-    h = 0.5 * (h + h.T) * inv_sqm[:, None] * inv_sqm[None, :]
-    rb = rigid_body_basis(np.asarray(positions, dtype=float), m)
-    proj = np.eye(len(h)) - rb @ rb.T
-    w, v = np.linalg.eigh(proj @ h @ proj)
-    # drop the rigid-body directions (the eigenvectors with the largest overlap with rb)
-    overlap = np.sum((rb.T @ v) ** 2, axis=0)
-    keep = np.argsort(overlap)[: len(h) - rb.shape[1]]
-    keep = np.sort(keep)
-    return w[keep], v[:, keep]
+    """:func:`emlpack.geometry.normal_modes` of a Cartesian Hessian (eV/Å^2) with the masses
+    of ``numbers``: ``(k, modes)``, force constants ``omega^2`` (eV/(Å^2 amu)) of the
+    vibrations and their mass-weighted orthonormal eigenvectors (3n, n_vib)."""
+    return geometry.normal_modes(hessian, positions, masses_of(numbers))
 
 
 @dataclass
@@ -374,13 +345,7 @@ def cell_normal_mode_sample(numbers, positions: np.ndarray, cell: np.ndarray,
     h = 0.5 * (h + h.T)
     # rigid-body motions of the extended coordinates: translations move positions only,
     # rotations act on positions and on the cell vectors
-    zero = []
-    for axis in np.eye(3):
-        zero.append(np.concatenate([np.tile(axis, n), np.zeros(9)]))
-    for axis in np.eye(3):
-        zero.append(np.concatenate([np.cross(axis, pos).ravel(), np.cross(axis, cell).ravel()]))
-    z, _ = np.linalg.qr(np.array(zero).T)
-    full = np.linalg.svd(np.eye(3 * n + 9) - z @ z.T)[0][:, : 3 * n + 3]  # internal basis
+    full = geometry.internal_basis(geometry.rigid_body_modes(pos, cell=cell))
     h_int = full.T @ h @ full
     w, v = np.linalg.eigh(0.5 * (h_int + h_int.T))
     if min_eigenvalue is not None:

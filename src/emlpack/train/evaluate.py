@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from emlpack._files import atomic_write, write_text_atomic
+from emlpack._files import write_figure_atomic, write_text_atomic
 from emlpack.data.dataset import make_batch
 from emlpack.data.references import reference_from_metadata
 from emlpack.nn.checkpoint import load_model, read_checkpoint
@@ -229,7 +229,7 @@ def parity_plots(arrays: dict, path: str | Path, title: str = "") -> Path:
         fig.suptitle(title)
     fig.tight_layout()
     path = Path(path)
-    atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=110), binary=True)
+    write_figure_atomic(path, fig, dpi=110)
     plt.close(fig)
     return path
 
