@@ -2,7 +2,7 @@
 warm-started pair relaxation vs the paper's boxed L-BFGS-B.
 
 System: hexane C6H14 (20 atoms, 19 valence pairs) embedded by RDKit
-(:func:`emlpack.qm.sampling.molecule_from_smiles`), pairs from :func:`emlpack.guess.guess_pairs`,
+(:func:`emlpack.qm.sampling.molecule_from_smiles`), pairs from :func:`emlpack.pairs.guess.guess_pairs`,
 then pairs and geometry optimised with the model; a trained model (``--model``, default
 ``runs/final_aug_true/best.pt``; the benchmark is skipped with a message when it is missing).
 NVT 300 K (Nosé-Hoover chain 3, 100 fs), dt 0.5 fs, the same seed and start for both
@@ -49,7 +49,7 @@ def hexane(model=None) -> Structure:
     heating up from the force-field geometry."""
     from ase import Atoms
 
-    from emlpack.guess import guess_pairs
+    from emlpack.pairs.guess import guess_pairs
     from emlpack.optimize import optimize
     from emlpack.qm.sampling import molecule_from_smiles
 

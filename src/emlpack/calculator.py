@@ -2,7 +2,7 @@
 
 The :class:`ase.Atoms` hold the atomic cores; the electron pairs (Å) live in
 ``atoms.info["electron_pairs"]`` (or are passed to the constructor; without either they are
-guessed, see :mod:`emlpack.guess`) and the homogeneous field (V/Å) in
+guessed, see :mod:`emlpack.pairs.guess`) and the homogeneous field (V/Å) in
 ``atoms.info["external_field"]`` or the constructor's ``field``. By default the pairs are
 relaxed to the energy minimum at fixed cores (Born-Oppenheimer) on every call, warm-started
 from the previous call's pairs moved rigidly with their nearest core. ``relax_pairs=False``
@@ -45,7 +45,7 @@ from emlpack.ensemble import ModelEnsemble, as_ensemble
 from emlpack.geometry import carry_pairs
 from emlpack.io.ase_convert import FIELD_KEY, PAIRS_KEY, atoms_to_structure
 from emlpack.nn.potential import EMLP
-from emlpack.relax import RelaxOptions, RelaxResult, relax_pairs
+from emlpack.pairs.relax import RelaxOptions, RelaxResult, relax_pairs
 
 log = logging.getLogger(__name__)
 
@@ -159,7 +159,7 @@ class EMLPCalculator(Calculator):
             return [given] * n
         if self.initial_pairs is not None:
             return [self.initial_pairs] * n
-        from emlpack.guess import guess_pairs  # no pairs given: Boys (molecule) / Lewis guess
+        from emlpack.pairs.guess import guess_pairs  # no pairs given: Boys (molecule) / Lewis guess
 
         return [guess_pairs(atoms)] * n
 

@@ -28,7 +28,7 @@ A :class:`Watchdog` checks every step (relaxation converged, no two pairs closer
 ``min_pair_distance``, no pair farther than ``max_core_distance`` from every core, and every
 ``curvature_every`` steps a positive-definite exact pair Hessian). A failed step is rolled back
 (positions, momenta, thermostat, calculator state) and retried from the pairs of the last good
-step moved rigidly with their nearest cores, then from :func:`emlpack.guess.guess_pairs`; if both
+step moved rigidly with their nearest cores, then from :func:`emlpack.pairs.guess.guess_pairs`; if both
 fail the run stops with :class:`MDWatchdogError` after writing everything so far.
 
 Outputs in the directory ``output``: ``trajectory.xyz`` (native extxyz, one frame per recorded
@@ -67,7 +67,7 @@ from emlpack.errors import EmlpackError
 from emlpack.io.extxyz import atomic_write, write_structures
 from emlpack.nn.checkpoint import load_model
 from emlpack.nn.potential import EMLP
-from emlpack.relax import damped_bfgs, pair_hessian, relax_pairs
+from emlpack.pairs.relax import damped_bfgs, pair_hessian, relax_pairs
 from emlpack.structure import Structure
 
 __all__ = [
@@ -228,7 +228,7 @@ class BOPairCalculator(Calculator):
         """:func:`guess_pairs`, ordered to match the rigidly moved last pairs (Hungarian)."""
         from scipy.optimize import linear_sum_assignment
 
-        from emlpack.guess import guess_pairs
+        from emlpack.pairs.guess import guess_pairs
 
         probe = Atoms(atoms.numbers, atoms.positions)
         probe.info["charge"] = self.charge

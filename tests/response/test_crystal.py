@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from emlpack.optimize import _STRAIN_BASIS, optimize
-from emlpack.relax import relax_pairs
+from emlpack.pairs.relax import relax_pairs
 from emlpack.response import (
     VOIGT,
     crystal_response_from_hessian,

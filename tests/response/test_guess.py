@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from emlpack.guess import guess_pairs, lewis_pairs
 from emlpack.io import minimum_image_distances, read_structures, structure_to_atoms
-from emlpack.relax import relax_pairs
+from emlpack.pairs.guess import guess_pairs, lewis_pairs
+from emlpack.pairs.relax import relax_pairs
 from tests.conftest import shared_path
 from tests.nn.helpers import reference_model
 
