@@ -32,9 +32,11 @@ Convergence: the largest pair-force norm (projected on the box) below ``fmax`` (
 Diagnostics per structure: converged flag, iterations, energy+gradient evaluations, Hessian
 evaluations, final max force, smallest eigenvalue of the exact pair Hessian at the result
 (default method: Davidson iterations on exact Hessian-vector products, preconditioned by the
-quasi-Newton model, instead of the full Hessian), and a failure reason (no convergence, two
-pairs closer than ``min_pair_distance``, a pair farther than ``max_core_distance`` from every
-core, negative curvature).
+quasi-Newton model, instead of the full Hessian), and a failure reason from
+:func:`emlpack.pairs.checks.check_pairs` (no convergence, two pairs closer than
+``min_pair_distance``, a pair farther than ``max_core_distance`` from every core, minimum
+image; non-positive curvature). :mod:`emlpack.pairs.solvers` wraps this function as
+:class:`~emlpack.pairs.solvers.BatchedSolver`.
 """
 
 from __future__ import annotations
