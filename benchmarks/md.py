@@ -2,7 +2,8 @@
 warm-started pair relaxation vs the paper's boxed L-BFGS-B.
 
 System: hexane C6H14 (20 atoms, 19 valence pairs) embedded by RDKit
-(:func:`emlpack.qm.sampling.molecule_from_smiles`), pairs from :func:`emlpack.guess.guess_pairs`,
+(:func:`emlpack.qm.sampling.molecule_from_smiles`), pairs from
+:func:`emlpack.pairs.guess.guess_pairs`,
 then pairs and geometry optimised with the model; a trained model (``--model``, default
 ``runs/final_aug_true/best.pt``; the benchmark is skipped with a message when it is missing).
 NVT 300 K (Nosé-Hoover chain 3, 100 fs), dt 0.5 fs, the same seed and start for both
@@ -49,8 +50,8 @@ def hexane(model=None) -> Structure:
     heating up from the force-field geometry."""
     from ase import Atoms
 
-    from emlpack.guess import guess_pairs
     from emlpack.optimize import optimize
+    from emlpack.pairs.guess import guess_pairs
     from emlpack.qm.sampling import molecule_from_smiles
 
     mol = molecule_from_smiles("CCCCCC", name="hexane", seed=0)
@@ -65,13 +66,15 @@ def hexane(model=None) -> Structure:
 def force_errors(start: Structure, frames, model) -> dict:
     """Largest error of the recorded core forces (eV/Å) and energies (eV) against the pairs
     relaxed to 1e-10 eV/Å at the same cores (from the recorded pairs): the per-step BO error."""
-    from emlpack.md import BOPairCalculator
+    from emlpack.calculator import EMLPCalculator
     from emlpack.nn.checkpoint import load_model
+    from emlpack.pairs.solvers import WarmStartSolver
 
     model = load_model(model, torch.float64).double().eval()
     df, de = 0.0, 0.0
     for f in frames:
-        calc = BOPairCalculator(model, f.pairs, start.field, fmax=1e-10)
+        calc = EMLPCalculator(model, pairs=f.pairs, field=start.field, check_bonding=False,
+                              pair_solver=WarmStartSolver(fmax=1e-10))
         atoms = Atoms(f.numbers, f.positions)
         atoms.calc = calc
         forces = atoms.get_forces()

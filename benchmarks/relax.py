@@ -43,7 +43,7 @@ from _common import (  # noqa: E402
     write_json,
 )
 
-from emlpack.relax import relax_pairs  # noqa: E402
+from emlpack.pairs.relax import relax_pairs  # noqa: E402
 
 MERGE_DISTANCE = 0.1  # Å
 

@@ -34,7 +34,7 @@ def hexane():
     from rdkit import Chem
     from rdkit.Chem import AllChem
 
-    from emlpack.guess import lewis_pairs
+    from emlpack.pairs.guess import lewis_pairs
     from emlpack.structure import Structure
 
     mol = Chem.AddHs(Chem.MolFromSmiles("CCCCCC"))
@@ -55,7 +55,7 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     from emlpack.io import read_structures
-    from emlpack.relax import relax_pairs
+    from emlpack.pairs.relax import relax_pairs
     from emlpack.response import crystal_response_from_hessian, extended_hessian
     from emlpack.spectra import ir_from_hessian
 

@@ -26,7 +26,7 @@ def methane():
 
 
 def calc(model, **kw):
-    from emlpack.relax import RelaxOptions
+    from emlpack.pairs.relax import RelaxOptions
 
     return EMLPCalculator(model, relax_options=RelaxOptions(fmax=FMAX), **kw)
 
@@ -101,7 +101,7 @@ def test_periodic_stress_matches_model(model):
 
 
 def test_missing_pairs_are_guessed(model, methane):
-    """Without pairs the calculator starts from emlpack.guess.guess_pairs (Boys or Lewis)."""
+    """Without pairs the calculator starts from emlpack.pairs.guess.guess_pairs (Boys or Lewis)."""
     given = np.array(methane.info.pop("electron_pairs"))
     methane.calc = calc(model, relax_pairs=False)
     methane.get_potential_energy()

@@ -65,7 +65,7 @@ def test_version():
 
 # ------------------------------------------------------------------ properties
 def test_polarizability_matches_the_library(model, model_file, water_file, tmp_path):
-    from emlpack.relax import relax_pairs
+    from emlpack.pairs.relax import relax_pairs
     from emlpack.response import molecule_response
 
     out = tmp_path / "pol.json"
@@ -88,7 +88,7 @@ def test_polarizability_matches_the_library(model, model_file, water_file, tmp_p
 
 
 def test_ir_and_its_plot(model, model_file, water_file, tmp_path):
-    from emlpack.relax import relax_pairs
+    from emlpack.pairs.relax import relax_pairs
     from emlpack.spectra import ir_spectrum
 
     out, png = tmp_path / "ir.json", tmp_path / "ir.png"

@@ -20,6 +20,7 @@ from emlpack.ensemble import (
 )
 from emlpack.io import read_structures, structure_to_atoms
 from emlpack.nn.checkpoint import save_model
+from emlpack.pairs.relax import RelaxOptions
 from emlpack.pretrained import (
     PretrainedError,
     available,
@@ -27,7 +28,6 @@ from emlpack.pretrained import (
     model_card,
     resolve_model,
 )
-from emlpack.relax import RelaxOptions
 from tests.conftest import shared_path
 from tests.test_reference_fixtures import load_model
 

@@ -83,9 +83,9 @@ def test_watchdog_rolls_back_a_broken_step(water, tmp_path, monkeypatch):
     moved pairs of the last good step; the trajectory equals an undisturbed one."""
     model, s = water
     ref = run_md(model, s, 8, tmp_path / "ref", ensemble="nve", temperature_K=300, seed=2)
-    from emlpack.md import BOPairCalculator
+    from emlpack.pairs.solvers import WarmStartSolver
 
-    predict = BOPairCalculator.predict
+    predict = WarmStartSolver.predict
     calls = {"n": 0}
 
     def broken(self, cores):
@@ -95,7 +95,7 @@ def test_watchdog_rolls_back_a_broken_step(water, tmp_path, monkeypatch):
             x[2] = x[3]
         return x
 
-    monkeypatch.setattr(BOPairCalculator, "predict", broken)
+    monkeypatch.setattr(WarmStartSolver, "predict", broken)
     r = run_md(model, s, 8, tmp_path / "hit", ensemble="nve", temperature_K=300, seed=2)
     assert r.watchdog_events == 1 and r.events[0]["fallback"] == "rigid" and r.events[0]["ok"]
     a, b = _frames(tmp_path / "ref"), _frames(tmp_path / "hit")
@@ -269,7 +269,7 @@ def test_newton_correction_of_core_forces_is_second_order(water):
     """The "corrected" mode's final step: pairs p + s with s = -H_pp^-1 g_p, core gradient
     g_c + H_cp s. With exact blocks the error against the relaxed pairs shrinks ~4x when the
     pair error halves (second order), while the uncorrected core-force error shrinks ~2x."""
-    from emlpack.md import BOPairCalculator, _hessian_columns
+    from emlpack.pairs.solvers import _hessian_columns, energy_gradient_function
 
     model, s = water
     rng = np.random.default_rng(3)
@@ -286,7 +286,7 @@ def test_newton_correction_of_core_forces_is_second_order(water):
     raw, corrected = [], []
     for delta in (2e-3, 1e-3):
         pairs = s.pairs + delta * direction
-        evaluate, _ = BOPairCalculator(model, pairs)._problem(s.copy(pairs=pairs))
+        evaluate, _ = energy_gradient_function(model, s.copy(pairs=pairs))
         hpp, hcp = _hessian_columns(evaluate, pairs, nc, h=1e-6)
         grad = gradient(pairs)
         step = -np.linalg.solve(hpp, grad[nc:].reshape(-1))
@@ -304,7 +304,8 @@ def test_corrected_mode_forces_within_tolerance_of_tight_relaxation(water, tmp_p
     mode's at the same tolerance, with fewer evaluations."""
     from ase import Atoms
 
-    from emlpack.md import BOPairCalculator
+    from emlpack.calculator import EMLPCalculator
+    from emlpack.pairs.solvers import WarmStartSolver
 
     model, s = water
     kw = dict(ensemble="nve", temperature_K=300, seed=7, fmax=1e-4)
@@ -313,7 +314,8 @@ def test_corrected_mode_forces_within_tolerance_of_tight_relaxation(water, tmp_p
     for mode in runs:
         df = de = 0.0
         for f in _frames(tmp_path / mode)[1:]:
-            calc = BOPairCalculator(model, f.pairs, fmax=1e-10)
+            calc = EMLPCalculator(model, pairs=f.pairs, check_bonding=False,
+                                  pair_solver=WarmStartSolver(fmax=1e-10))
             atoms = Atoms(f.numbers, f.positions)
             atoms.calc = calc
             df = max(df, np.abs(atoms.get_forces() - f.forces).max())

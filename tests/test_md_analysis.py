@@ -411,7 +411,7 @@ def test_ase_velocity_verlet_on_the_calculator_follows_the_bo_trajectory(water_m
 
     from emlpack.calculator import EMLPCalculator
     from emlpack.io import structure_to_atoms
-    from emlpack.relax import RelaxOptions
+    from emlpack.pairs.relax import RelaxOptions
 
     model, s, harmonic, h_pp_inv = water_minimum
     temperature, dt, n_steps = 20.0, 0.5, 20
@@ -441,7 +441,7 @@ def test_md_with_ase_velocity_verlet_and_calculator_matches_harmonic_ir(water_mi
 
     from emlpack.calculator import EMLPCalculator
     from emlpack.io import structure_to_atoms
-    from emlpack.relax import RelaxOptions
+    from emlpack.pairs.relax import RelaxOptions
 
     model, s, harmonic, _ = water_minimum
     temperature, dt, n_steps = 20.0, 0.5, 320

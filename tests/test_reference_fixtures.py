@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from emlpack.nn.reference import model_from_reference
-from emlpack.relax import relax_pairs
+from emlpack.pairs.relax import relax_pairs
 from emlpack.response import extended_hessian
 from emlpack.structure import Structure
 from emlpack.units import EV_PER_A3_IN_GPA, FIELD_AU_IN_V_PER_A
@@ -250,7 +250,7 @@ def test_relaxation_methane(small_model, bo):
 def test_relaxation_ethanol_same_minimum(small_model, bo):
     """C2H6O has a very soft mode (0.0017 eV/Å^2): compare energies and the minimum predicted
     by one Newton step from the reference's result, not raw positions at 1e-4 Å."""
-    from emlpack.relax import _PairProblem
+    from emlpack.pairs.relax import _PairProblem
 
     p = "bo08_"
     r = relax_pairs(small_model, bo_structure(bo, p), fmax=1e-7)[0]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from emlpack.io import read_structures
-from emlpack.relax import relax_pairs
+from emlpack.pairs.relax import relax_pairs
 from tests.conftest import shared_path
 from tests.test_reference_fixtures import load_model
 
@@ -70,7 +70,7 @@ def test_merged_pairs_are_reported(model, methanes):
     r = relax_pairs(model, s.copy(pairs=pairs), bounds=[(lo, hi)])[0]
     assert np.linalg.norm(r.pairs[0] - r.pairs[1]) < 0.07
     assert r.failed  # whether or not the boxed relaxation converged
-    assert "pairs 0 and 1 are" in r.reason and "(merged)" in r.reason, r.reason
+    assert "pairs 0 and 1 are" in r.reason and "(merged;" in r.reason, r.reason
 
 
 def test_escaped_pair_is_reported(model, methanes):

@@ -12,7 +12,7 @@ import torch
 from emlpack.io import read_structures
 from emlpack.nn.checkpoint import load_model as load_checkpoint
 from emlpack.nn.electrostatics import coulomb_molecular, ewald_reciprocal
-from emlpack.relax import _CoulombPairs, _PairProblem, relax_pairs
+from emlpack.pairs.relax import _CoulombPairs, _PairProblem, relax_pairs
 from tests.conftest import shared_path
 from tests.test_reference_fixtures import load_model
 
@@ -118,7 +118,7 @@ def test_unknown_method_is_refused(small):
 
 def test_overrides_do_not_change_the_callers_options():
     from emlpack.io import read_structures
-    from emlpack.relax import RelaxOptions, relax_pairs
+    from emlpack.pairs.relax import RelaxOptions, relax_pairs
     from tests.conftest import shared_path
     from tests.test_reference_fixtures import load_model
 

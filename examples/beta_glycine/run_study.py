@@ -414,7 +414,7 @@ def stage_emlp(study: Study) -> dict:
     """BO cell optimisation with the model; tensors at the optimum and at the input geometry."""
     from emlpack.nn.checkpoint import load_model
     from emlpack.optimize import optimize
-    from emlpack.relax import relax_pairs
+    from emlpack.pairs.relax import relax_pairs
     from emlpack.response import crystal_response
 
     e = study.cfg.get("emlp", {})

@@ -539,7 +539,7 @@ def _dft_structure(r: dict):
 
 # ---------------------------------------------------------------------- polarizability
 def stage_polarizability(study: Study) -> None:
-    from emlpack.relax import relax_pairs
+    from emlpack.pairs.relax import relax_pairs
     from emlpack.response import molecule_response
 
     refs = dft_results(study)
@@ -625,7 +625,7 @@ def polarizability_summary(study: Study) -> dict | None:
 def stage_ir(study: Study) -> None:
     from emlpack.bonding import bonding_changes
     from emlpack.optimize import optimize
-    from emlpack.relax import relax_pairs
+    from emlpack.pairs.relax import relax_pairs
     from emlpack.spectra import ir_spectrum
 
     c = study.cfg.get("ir", {})

@@ -2,11 +2,16 @@
 
 The :class:`ase.Atoms` hold the atomic cores; the electron pairs (Å) live in
 ``atoms.info["electron_pairs"]`` (or are passed to the constructor; without either they are
-guessed, see :mod:`emlpack.guess`) and the homogeneous field (V/Å) in
+guessed, see :mod:`emlpack.pairs.guess`) and the homogeneous field (V/Å) in
 ``atoms.info["external_field"]`` or the constructor's ``field``. By default the pairs are
 relaxed to the energy minimum at fixed cores (Born-Oppenheimer) on every call, warm-started
-from the previous call's pairs moved rigidly with their nearest core. ``relax_pairs=False``
-gives the static model at the given pairs.
+from the previous call's pairs moved rigidly with their nearest core
+(:func:`emlpack.geometry.carry_pairs`). ``relax_pairs=False`` gives the static model at the
+given pairs. The relaxation is a ``pair_solver`` (:mod:`emlpack.pairs.solvers`): by default
+:class:`~emlpack.pairs.solvers.BatchedSolver` (``relax_options``); MD uses the warm-start
+solvers (:class:`~emlpack.pairs.solvers.WarmStartSolver`, the paper's
+:class:`~emlpack.pairs.solvers.BoxedLBFGSB`), which also return the core forces (no further
+evaluation). With several models every member gets its own copy of the solver.
 
 ``model`` is an :class:`~emlpack.nn.potential.EMLP`, a checkpoint file, a folder of
 checkpoints, a pretrained name (``"mini-eqm7"``), a list of those, or a
@@ -31,6 +36,7 @@ first geometry this calculator saw (:func:`emlpack.bonding.bonding_changes`).
 
 from __future__ import annotations
 
+import copy
 import logging
 from pathlib import Path
 
@@ -45,7 +51,8 @@ from emlpack.ensemble import ModelEnsemble, as_ensemble
 from emlpack.geometry import carry_pairs
 from emlpack.io.ase_convert import FIELD_KEY, PAIRS_KEY, atoms_to_structure
 from emlpack.nn.potential import EMLP
-from emlpack.relax import RelaxOptions, RelaxResult, relax_pairs
+from emlpack.pairs.relax import RelaxOptions, RelaxResult
+from emlpack.pairs.solvers import BatchedSolver, PairSolver
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +70,9 @@ class EMLPCalculator(Calculator):
         relax_pairs: relax the electron pairs at fixed cores before every evaluation.
         field: default homogeneous field (V/Å) when ``atoms.info`` has none.
         pairs: initial electron pairs (Å) when ``atoms.info`` has none.
-        relax_options: :class:`RelaxOptions` (default: fmax 1e-4 eV/Å).
+        relax_options: :class:`RelaxOptions` of the default solver (default: fmax 1e-4 eV/Å).
+        pair_solver: the relaxation (:class:`~emlpack.pairs.solvers.PairSolver`; default
+            ``BatchedSolver(relax_options)``); copied for every further ensemble member.
         dtype: evaluation precision (float64 by default; the caller's models are not changed).
         energy_spread_warning: warn above this ensemble energy spread (eV/atom).
         force_spread_warning: warn above this ensemble force spread (eV/Å, largest component).
@@ -97,6 +106,7 @@ class EMLPCalculator(Calculator):
         energy_spread_warning: float = ENERGY_SPREAD_WARNING,
         force_spread_warning: float = FORCE_SPREAD_WARNING,
         check_bonding: bool = True,
+        pair_solver: PairSolver | None = None,
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
@@ -107,6 +117,11 @@ class EMLPCalculator(Calculator):
         self.default_field = np.zeros(3) if field is None else np.asarray(field, float)
         self.initial_pairs = None if pairs is None else np.asarray(pairs, float).reshape(-1, 3)
         self.relax_options = relax_options or RelaxOptions()
+        solver = pair_solver or BatchedSolver(self.relax_options)
+        #: one solver per ensemble member (warm-start solvers keep per-model state)
+        self.pair_solvers: list[PairSolver] = [solver] + [
+            copy.deepcopy(solver) for _ in self.ensemble.members[1:]]
+        self.pair_solver = solver
         self.energy_spread_warning = float(energy_spread_warning)
         self.force_spread_warning = float(force_spread_warning)
         self.check_bonding = bool(check_bonding)
@@ -136,8 +151,19 @@ class EMLPCalculator(Calculator):
         return changes
 
     def reset(self) -> None:
+        """Forget results, the warm start and the solvers' warm-start state."""
         super().reset()
         self._warm = None
+        for solver in self.pair_solvers:
+            solver.reset()
+
+    def set_results(self, atoms: Atoms, results: dict) -> None:
+        """Take ``results`` as this calculator's for ``atoms`` (e.g. restored from a checkpoint
+        or a rollback): a call at the same atoms and field returns them without a calculation."""
+        self.atoms = atoms.copy()
+        self.atoms.calc = None
+        self.results = copy.deepcopy(results)
+        self._last_field = self._field_of(atoms).copy()
 
     def _start_pairs(self, atoms: Atoms) -> list[np.ndarray]:
         """Starting pairs (Å) of every member: warm (carried with the cores) or given/guessed."""
@@ -159,7 +185,7 @@ class EMLPCalculator(Calculator):
             return [given] * n
         if self.initial_pairs is not None:
             return [self.initial_pairs] * n
-        from emlpack.guess import guess_pairs  # no pairs given: Boys (molecule) / Lewis guess
+        from emlpack.pairs.guess import guess_pairs  # no pairs: Boys (molecule) / Lewis guess
 
         return [guess_pairs(atoms)] * n
 
@@ -181,12 +207,16 @@ class EMLPCalculator(Calculator):
         starts = self._start_pairs(atoms)
         energies, relative, raw, outs, pairs_of, dipoles = [], [], [], [], [], []
         self.relax_results = []
-        for k, (member, start) in enumerate(zip(self.ensemble.members, starts, strict=True)):
+        self.relax_result = None
+        members = zip(self.ensemble.members, starts, self.pair_solvers, strict=True)
+        for k, (member, start, solver) in enumerate(members):
             structure = atoms_to_structure(atoms, pairs=start, field=field,
                                            source="EMLPCalculator")
+            out = None
             if self.relax:
-                result = relax_pairs(member.model, structure, self.relax_options)[0]
+                result = solver.relax(member.model, structure)
                 self.relax_results.append(result)
+                self.relax_result = self.relax_results[0]
                 if result.reason:
                     which = f" (model {k}: {member.source})" if len(self.ensemble) > 1 else ""
                     raise CalculationFailed(
@@ -194,7 +224,12 @@ class EMLPCalculator(Calculator):
                         f"{which}: {result.reason}"
                     )
                 structure = structure.copy(pairs=result.pairs)
-            out = member.model.evaluate(structure, dtype=self.dtype)
+                if result.forces is not None and not structure.pbc:
+                    # the solver evaluated the model at its result: no further evaluation
+                    out = {"energy": result.energy, "forces": result.forces,
+                           "pair_forces": result.pair_forces}
+            if out is None:
+                out = member.model.evaluate(structure, dtype=self.dtype)
             raw.append(out["energy"])
             shift = rel_shift = 0.0
             if self.ensemble.dft_scale and structure.charge == 0:

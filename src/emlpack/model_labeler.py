@@ -2,7 +2,7 @@
 
 :class:`ModelLabeler` obeys the labeler protocol of :mod:`emlpack.crystal_reference` and the
 CP2K labeler: ``labeler(structure, *, stress=False) -> Structure`` with the electron pairs
-relaxed at fixed cores (Born-Oppenheimer, :func:`emlpack.relax.relax_pairs`), energy (eV,
+relaxed at fixed cores (Born-Oppenheimer, :func:`emlpack.pairs.relax.relax_pairs`), energy (eV,
 field term included), core forces (eV/Å), stress (eV/Å³, ASE sign, only with ``stress=True``)
 and the relaxed pairs (Å). Uses: the finite-difference reference tensors of a model (checked
 against :func:`emlpack.response.crystal_response`), fast stand-ins for DFT in tests, and the
@@ -23,7 +23,7 @@ import torch
 from emlpack.errors import EmlpackError
 from emlpack.geometry import schur_complement
 from emlpack.nn.potential import EMLP, for_evaluation
-from emlpack.relax import RelaxOptions, relax_pairs
+from emlpack.pairs.relax import RelaxOptions, relax_pairs
 from emlpack.structure import Structure
 
 

@@ -9,7 +9,7 @@ import pytest
 
 from emlpack.geometry import STRAIN_BASIS, VOIGT
 from emlpack.optimize import optimize
-from emlpack.relax import relax_pairs
+from emlpack.pairs.relax import relax_pairs
 from emlpack.response import (
     crystal_response_from_hessian,
     extended_gradient,

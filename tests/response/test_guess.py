@@ -7,9 +7,9 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from emlpack.geometry import minimum_image_distances
-from emlpack.guess import guess_pairs, lewis_pairs
 from emlpack.io import read_structures, structure_to_atoms
-from emlpack.relax import relax_pairs
+from emlpack.pairs.guess import guess_pairs, lewis_pairs
+from emlpack.pairs.relax import relax_pairs
 from tests.conftest import shared_path
 from tests.nn.helpers import reference_model
 

@@ -9,7 +9,7 @@ from scipy.special import erf
 
 from emlpack.geometry import normal_modes
 from emlpack.optimize import optimize
-from emlpack.relax import relax_pairs
+from emlpack.pairs.relax import relax_pairs
 from emlpack.response import (
     born_oppenheimer_blocks,
     extended_hessian,
@@ -136,7 +136,7 @@ def test_ir_matches_ase_vibrations_and_infrared(water_setup, tmp_path):
 
     from emlpack.calculator import EMLPCalculator
     from emlpack.io import structure_to_atoms
-    from emlpack.relax import RelaxOptions
+    from emlpack.pairs.relax import RelaxOptions
 
     model, s, h = water_setup
     ir = ir_from_hessian(h, s)

@@ -19,7 +19,7 @@ import torch
 
 import emlpack.train.evaluate as ev
 from emlpack.data.references import ConstantReference
-from emlpack.relax import relax_pairs
+from emlpack.pairs.relax import relax_pairs
 from emlpack.structure import Structure
 from tests.nn.helpers import water_molecule
 from tests.response.toy import spring_model

@@ -374,8 +374,8 @@ def read_structure(args, model, log: Log, periodic: bool | None = None, command:
     if is_pair.any():
         return frame_to_structure(atoms, where), where
     check_pair_count(atoms.numbers, None, charge, where)
-    from emlpack.guess import guess_pairs
     from emlpack.io import atoms_to_structure
+    from emlpack.pairs.guess import guess_pairs
 
     t0 = time.perf_counter()
     method = args.guess

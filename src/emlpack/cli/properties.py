@@ -162,7 +162,7 @@ def relax(model, s, level: str, args, log: Log, warnings: list[str]):
     """Relax ``s`` to ``level``; problems are appended to ``warnings``, never hidden."""
     from emlpack.bonding import bonding_changes
     from emlpack.optimize import optimize
-    from emlpack.relax import relax_pairs
+    from emlpack.pairs.relax import relax_pairs
     from emlpack.units import EV_PER_A3_IN_GPA
 
     info: dict = {"level": level}

@@ -6,10 +6,10 @@
 * Intrinsic variability: the MAE of the best constant model (the median of the labels), with
   the field forces ``q E`` subtracted from the force labels (as in the paper's tables; the
   errors are unaffected by this).
-* Dynamic errors (pairs relaxed with :func:`emlpack.relax.relax_pairs`): energy, core forces
+* Dynamic errors (pairs relaxed with :func:`emlpack.pairs.relax.relax_pairs`): energy, core forces
   and dipole norm (Debye) at the relaxed pairs, for the relaxations that did not fail.
 * Error rate: the fraction of failed relaxations. A relaxation fails when
-  :func:`~emlpack.relax.relax_pairs` reports a reason (no convergence to ``fmax`` within the
+  :func:`~emlpack.pairs.relax.relax_pairs` reports a reason (no convergence to ``fmax`` within the
   iteration limit, two pairs closer than 0.1 Å, a pair farther than 2 Å from every core,
   negative curvature at the result), or when a relaxed pair ends farther than
   ``max_pair_shift`` (0.5 Å) from its DFT centre.
@@ -84,7 +84,7 @@ def dynamic_errors(model, reference, structures, batch_size: int = 16,
     """Relax the pairs of every structure; errors at the relaxed pairs and the failure rate."""
     from tqdm import tqdm
 
-    from emlpack.relax import relax_pairs
+    from emlpack.pairs.relax import relax_pairs
 
     c = model.config
     e_err, f_err, d_err, d_true, e_true, f_true = [], [], [], [], [], []

@@ -32,9 +32,11 @@ Convergence: the largest pair-force norm (projected on the box) below ``fmax`` (
 Diagnostics per structure: converged flag, iterations, energy+gradient evaluations, Hessian
 evaluations, final max force, smallest eigenvalue of the exact pair Hessian at the result
 (default method: Davidson iterations on exact Hessian-vector products, preconditioned by the
-quasi-Newton model, instead of the full Hessian), and a failure reason (no convergence, two
-pairs closer than ``min_pair_distance``, a pair farther than ``max_core_distance`` from every
-core, negative curvature).
+quasi-Newton model, instead of the full Hessian), and a failure reason from
+:func:`emlpack.pairs.checks.check_pairs` (no convergence, two pairs closer than
+``min_pair_distance``, a pair farther than ``max_core_distance`` from every core, minimum
+image; non-positive curvature). :mod:`emlpack.pairs.solvers` wraps this function as
+:class:`~emlpack.pairs.solvers.BatchedSolver`.
 """
 
 from __future__ import annotations
@@ -45,11 +47,11 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from emlpack.io.cores import minimum_image_distances
 from emlpack.nn.electrostatics import coulomb_pair_derivatives, ewald_reciprocal_derivatives
 from emlpack.nn.graph import Graph
 from emlpack.nn.potential import EMLP
 from emlpack.nn.scatter import segment_sum
+from emlpack.pairs.checks import MAX_CORE_DISTANCE, MIN_PAIR_DISTANCE, check_pairs
 from emlpack.structure import Structure
 
 
@@ -67,6 +69,11 @@ class RelaxResult:
     min_curvature: float
     reason: str = ""
     pair_forces: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    #: forces on the cores (eV/Å) at the result when the solver computed them (MD's warm-start
+    #: solvers), so that the caller needs no further evaluation; None otherwise
+    forces: np.ndarray | None = None
+    #: how the start pairs were made ("given"; MD's solvers: "warm", "paper", "rigid", "guess")
+    start: str = "given"
 
     @property
     def failed(self) -> bool:
@@ -109,8 +116,9 @@ class RelaxOptions:
     #: iterations preconditioned by the quasi-Newton model, at most this many exact
     #: Hessian-vector products (0: the full exact pair Hessian instead)
     curvature_steps: int = 20
-    min_pair_distance: float = 0.1
-    max_core_distance: float = 2.0
+    #: failure thresholds of :func:`emlpack.pairs.checks.check_pairs` (Å)
+    min_pair_distance: float = MIN_PAIR_DISTANCE
+    max_core_distance: float = MAX_CORE_DISTANCE
     check_curvature: bool = True
 
 
@@ -754,7 +762,11 @@ def _results(structures, prob, x, energy, grad, converged, iters, n_eval, n_hess
     out = []
     for k, s in enumerate(structures):
         pairs = xs[pb == k]
-        reason = _failure_reason(s, pairs, bool(converged[k]), float(min_curv[k]), opts)
+        reason = check_pairs(pairs, s.positions, s.cell, s.pbc,
+                             min_pair_distance=opts.min_pair_distance,
+                             max_core_distance=opts.max_core_distance,
+                             converged=bool(converged[k]), fmax=opts.fmax,
+                             min_curvature=float(min_curv[k]))
         out.append(
             RelaxResult(
                 pairs=pairs.copy(),
@@ -770,30 +782,6 @@ def _results(structures, prob, x, energy, grad, converged, iters, n_eval, n_hess
             )
         )
     return out
-
-
-def _failure_reason(
-    s: Structure, pairs: np.ndarray, converged: bool, min_curv: float, opts: RelaxOptions
-) -> str:
-    reasons = []
-    if len(pairs) > 1:
-        d = minimum_image_distances(pairs, pairs, s.cell, s.pbc)
-        d[np.diag_indices(len(pairs))] = np.inf
-        if d.min() < opts.min_pair_distance:
-            i, j = np.unravel_index(np.argmin(d), d.shape)
-            reasons.append(f"pairs {i} and {j} are {d.min():.3g} Å apart (merged)")
-    if len(pairs):
-        dc = minimum_image_distances(pairs, s.positions, s.cell, s.pbc)
-        far = np.nonzero(dc.min(axis=1) > opts.max_core_distance)[0]
-        if len(far):
-            reasons.append(
-                f"pair {far[0]} is {dc.min(axis=1)[far[0]]:.3g} Å from the nearest core"
-            )
-    if not converged:
-        reasons.append(f"no convergence to fmax={opts.fmax:g} eV/Å")
-    if opts.check_curvature and np.isfinite(min_curv) and min_curv < 0:
-        reasons.append(f"negative curvature ({min_curv:.3g} eV/Å^2) at the result")
-    return "; ".join(reasons)
 
 
 def pair_hessian(model: EMLP, structure: Structure, probe_budget: float = 6e6) -> np.ndarray:

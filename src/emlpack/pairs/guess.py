@@ -13,7 +13,7 @@
   like Boys/Wannier centres, 0.35 Å); lone pairs ~0.3 Å from the nucleus in the directions
   farthest from the other pairs around the atom.
 
-The model then relaxes the pairs (:func:`emlpack.relax.relax_pairs`); the guess only has to be
+The model then relaxes the pairs (:func:`emlpack.pairs.relax.relax_pairs`); the guess only has to be
 in the right basin. No torch here.
 """
 
@@ -60,6 +60,24 @@ def guess_pairs(atoms: Atoms, method: str = "auto", level: str = "hf/sto-3g/nodf
     if method == "lewis":
         return lewis_pairs(atoms, charge)
     raise ValueError(f"guess_pairs: unknown method {method!r} (auto, boys, lewis)")
+
+
+def guess_matched(numbers, positions, reference: np.ndarray, charge: float = 0.0,
+                  method: str = "auto") -> np.ndarray:
+    """:func:`guess_pairs` for the molecule ``numbers``/``positions`` (Å), ordered to match
+    ``reference`` pairs (Å) by the Hungarian algorithm when the counts agree (so that a fresh
+    guess continues the pair labels of, e.g., an MD trajectory)."""
+    from scipy.optimize import linear_sum_assignment
+
+    atoms = Atoms(numbers, positions)
+    atoms.info["charge"] = charge
+    guess = np.asarray(guess_pairs(atoms, method=method), float).reshape(-1, 3)
+    ref = np.asarray(reference, float).reshape(-1, 3)
+    if len(guess) == len(ref) and len(ref):
+        cost = np.linalg.norm(ref[:, None] - guess[None], axis=-1)
+        _, cols = linear_sum_assignment(cost)
+        guess = guess[cols]
+    return guess
 
 
 def _have_pyscf() -> bool:
