@@ -137,8 +137,8 @@ def schnet_edge_hessian(
         out = None
         for jp, pad, other in ((jac_pad[0], pads[0], j), (jac_pad[1], pads[1], i)):
             y = torch.cat([w1 * x.index_select(0, other), w1.new_zeros(1, k)])
-            part = torch.bmm(y[pad].transpose(1, 2), jp)  # (N, K, m)
-            out = part if out is None else out + part
+            y = y[pad].transpose(1, 2)  # (N, K, D)
+            out = torch.bmm(y, jp) if out is None else out.baddbmm_(y, jp)  # (N, K, m)
         return out.transpose(0, 1).to(tdt).contiguous()
 
     def node(x: torch.Tensor) -> torch.Tensor:
@@ -152,7 +152,8 @@ def schnet_edge_hessian(
     spread_g = [spread(taylor[t][1], gconvs[t]) for t in range(1, n_int)]
     mats_t = [cast(x) for x in mats]
     wcs = [cast(f[4]) for f in fw["filters"]]
-    cross = [[cast(c) for c in cs] for cs in fw["cross"]]
+    # a_t depends on u_0..u_{t-1} through the stacked (t K, K) matrix [C_0t; ...; C_(t-1)t]
+    cross = [cast(torch.cat(cs, 0)) if cs else None for cs in fw["cross"]]
     w_out, wh1_t = cast(fw["w_out"]), cast(wh1)
     slopes = [softplus_slopes(acts[t][1]) for t in range(n_int)]
     d_u = torch.empty(n_int * k, n, m_dir, dtype=tdt, device=r.device)
@@ -161,10 +162,7 @@ def schnet_edge_hessian(
         if t == 0:
             dconv, da = spread_a[0], None
         else:
-            da = cross[t][0].T @ d_u[:k].view(k, nm)
-            for s in range(1, t):
-                da = torch.addmm(da, cross[t][s].T, d_u[s * k : (s + 1) * k].view(k, nm))
-            da = da.view(k, n, m_dir)
+            da = (cross[t].T @ d_u[: t * k].view(t * k, nm)).view(k, n, m_dir)
             dconv = torch.baddbmm(spread_a[t], mats_t[t], da)
         dp = (wcs[t].T @ dconv.view(k, nm)).view(k, n, m_dir)
         torch.mul(node(slopes[t][0]), dp, out=d_u[t * k : (t + 1) * k])
@@ -175,17 +173,16 @@ def schnet_edge_hessian(
     dgz2 = node(c2 * wh2[:, 0]) * dz2
     dgz1 = node(c1 * gy1) * dz1 + node(s1) * (wh1_t @ dgz2.view(-1, nm)).view(-1, n, m_dir)
     dg_u = (w_out @ dgz1.view(-1, nm)).view(-1, n, m_dir)
-    dgus = [dg_u[t * k : (t + 1) * k] for t in range(n_int)]
+
     hess = torch.zeros(m_dir, m_dir, dtype=tdt, device=r.device)
     for t in reversed(range(n_int)):
         sp1, sp2 = slopes[t]
-        dgp = node(sp2 * gus[t]) * dps[t] + node(sp1) * dgus[t]
+        dgp = torch.addcmul(node(sp1) * dg_u[t * k : (t + 1) * k], node(sp2 * gus[t]), dps[t])
         dgconv = (wcs[t] @ dgp.view(k, nm)).view(k, n, m_dir)
         hess.addmm_(dgconv.view(-1, m_dir).T, spread_a[t].view(-1, m_dir))
         if t > 0:
             dga = torch.baddbmm(spread_g[t - 1], mats_t[t], dgconv).view(k, nm)
-            for s in range(t):
-                dgus[s] = dgus[s] + (cross[t][s] @ dga).view(k, n, m_dir)
+            dg_u[: t * k].view(t * k, nm).addmm_(cross[t], dga)
             hess.addmm_(das[t].view(-1, m_dir).T, spread_g[t - 1].view(-1, m_dir))
     hess = hess.to(dt) + jac.T @ (curv_r[:, None] * jac)
     return grad_r, hess
