@@ -151,3 +151,21 @@ def test_fast_equals_reference_benchmark_beta_glycine():
         p.requires_grad_(False)
     s = read_structures(shared_path("data/beta_glycine_pbe_wannier.xyz"))[0]
     assert_same(model, s)
+
+
+def test_schnet_hessian_chunks():
+    """Directions processed in several chunks give the same matrix as one chunk."""
+    from emlpack.nn.schnet_hessian import schnet_edge_hessian
+    from emlpack.response import _edge_derivatives, _energy_function
+
+    model = random_model()
+    s = water_crystal(FIELD)
+    g = model.graph(s)
+    _, x0 = _energy_function(model, s, torch.float64)
+    r, jac, _ = _edge_derivatives(model, g, x0, True)
+    with torch.no_grad():
+        g1, h1 = schnet_edge_hessian(model.schnet, g.numbers, r, g.edge_i, g.edge_j, jac)
+        g2, h2 = schnet_edge_hessian(model.schnet, g.numbers, r, g.edge_i, g.edge_j, jac,
+                                     max_numbers=30 * model.config.n_filters * g.n_particles * 7)
+    assert torch.equal(g1, g2)
+    assert float((h1 - h2).abs().max()) <= 1e-13 * float(h1.abs().max())

@@ -60,6 +60,7 @@ def schnet_edge_hessian(
     j: torch.Tensor,
     jac: torch.Tensor,
     tangent_dtype: torch.dtype | None = None,
+    max_numbers: int = 2**25,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``(dE/dr (E,), J^T (d2E/dr dr) J (m, m))`` of the summed SchNet energy (eV, Å) of one
     structure with particle numbers ``numbers`` (N,), half-list edges ``(i, j)`` of lengths
@@ -67,6 +68,9 @@ def schnet_edge_hessian(
 
     ``tangent_dtype`` (default: ``r``'s): dtype of the m directional derivatives (the dense
     products); ``torch.float32`` halves their cost at ~1e-7 relative error of the result.
+    ``max_numbers``: the directions are processed in chunks whose tangent arrays hold about
+    this many numbers (default 2^25, ~270 MB in float64; beta-glycine's 159 directions are
+    one chunk); with several chunks the spreads of each pair of chunks are recomputed.
     """
     dt = r.dtype
     tdt = tangent_dtype or dt
@@ -129,17 +133,22 @@ def schnet_edge_hessian(
     pads = [_padded_groups(side, n, n_edges) for side in (i, j)]
     jac_ext = torch.cat([jac, jac.new_zeros(1, m_dir)])
     jac_pad = [jac_ext[pad] for pad in pads]  # (N, D, m) each
-    nm = n * m_dir
 
-    def spread(w1: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    def spread(w1: torch.Tensor, x: torch.Tensor, cols: slice) -> torch.Tensor:
         """``S[k, n, m] = sum_e J[e, m] w1[e, k] (x[j_e, k] [n = i_e] + x[i_e, k] [n = j_e])``
-        (the convolution's derivative along direction m at fixed features ``x``)."""
+        (the convolution's derivative along direction m at fixed features ``x``), for the
+        directions ``cols``."""
         out = None
         for jp, pad, other in ((jac_pad[0], pads[0], j), (jac_pad[1], pads[1], i)):
             y = torch.cat([w1 * x.index_select(0, other), w1.new_zeros(1, k)])
             y = y[pad].transpose(1, 2)  # (N, K, D)
+            jp = jp[:, :, cols]
             out = torch.bmm(y, jp) if out is None else out.baddbmm_(y, jp)  # (N, K, m)
         return out.transpose(0, 1).to(tdt).contiguous()
+
+    def spreads(cols: slice) -> tuple[list, list]:
+        return ([spread(taylor[t][1], acts[t][0], cols) for t in range(n_int)],
+                [spread(taylor[t][1], gconvs[t], cols) for t in range(1, n_int)])
 
     def node(x: torch.Tensor) -> torch.Tensor:
         """Per-particle factor (N, F) as (F, N, 1) in the tangent dtype."""
@@ -148,41 +157,67 @@ def schnet_edge_hessian(
     def cast(x: torch.Tensor) -> torch.Tensor:
         return x.to(tdt)
 
-    spread_a = [spread(taylor[t][1], acts[t][0]) for t in range(n_int)]
-    spread_g = [spread(taylor[t][1], gconvs[t]) for t in range(1, n_int)]
     mats_t = [cast(x) for x in mats]
     wcs = [cast(f[4]) for f in fw["filters"]]
     # a_t depends on u_0..u_{t-1} through the stacked (t K, K) matrix [C_0t; ...; C_(t-1)t]
     cross = [cast(torch.cat(cs, 0)) if cs else None for cs in fw["cross"]]
     w_out, wh1_t = cast(fw["w_out"]), cast(wh1)
     slopes = [softplus_slopes(acts[t][1]) for t in range(n_int)]
-    d_u = torch.empty(n_int * k, n, m_dir, dtype=tdt, device=r.device)
-    das, dps = [], []
-    for t in range(n_int):
-        if t == 0:
-            dconv, da = spread_a[0], None
-        else:
-            da = (cross[t].T @ d_u[: t * k].view(t * k, nm)).view(k, n, m_dir)
-            dconv = torch.baddbmm(spread_a[t], mats_t[t], da)
-        dp = (wcs[t].T @ dconv.view(k, nm)).view(k, n, m_dir)
-        torch.mul(node(slopes[t][0]), dp, out=d_u[t * k : (t + 1) * k])
-        das.append(da)
-        dps.append(dp)
-    dz1 = (w_out.T @ d_u.view(-1, nm)).view(-1, n, m_dir)
-    dz2 = (wh1_t.T @ (node(s1) * dz1).view(-1, nm)).view(-1, n, m_dir)
-    dgz2 = node(c2 * wh2[:, 0]) * dz2
-    dgz1 = node(c1 * gy1) * dz1 + node(s1) * (wh1_t @ dgz2.view(-1, nm)).view(-1, n, m_dir)
-    dg_u = (w_out @ dgz1.view(-1, nm)).view(-1, n, m_dir)
+    node_s1, node_c2, node_c1 = node(s1), node(c2 * wh2[:, 0]), node(c1 * gy1)
+    node_sp = [(node(sp1), node(sp2 * gus[t])) for t, (sp1, sp2) in enumerate(slopes)]
 
-    hess = torch.zeros(m_dir, m_dir, dtype=tdt, device=r.device)
-    for t in reversed(range(n_int)):
-        sp1, sp2 = slopes[t]
-        dgp = torch.addcmul(node(sp1) * dg_u[t * k : (t + 1) * k], node(sp2 * gus[t]), dps[t])
-        dgconv = (wcs[t] @ dgp.view(k, nm)).view(k, n, m_dir)
-        hess.addmm_(dgconv.view(-1, m_dir).T, spread_a[t].view(-1, m_dir))
-        if t > 0:
-            dga = torch.baddbmm(spread_g[t - 1], mats_t[t], dgconv).view(k, nm)
-            dg_u[: t * k].view(t * k, nm).addmm_(cross[t], dga)
-            hess.addmm_(das[t].view(-1, m_dir).T, spread_g[t - 1].view(-1, m_dir))
+    def directions(spread_a: list, spread_g: list) -> tuple[list, list]:
+        """Forward over reverse along the c directions of ``spread_a``: per interaction the
+        directional derivatives of ``dE/dconv_t`` and of ``a_t`` (K, N, c)."""
+        c = spread_a[0].shape[2]
+        nc = n * c
+        d_u = torch.empty(n_int * k, n, c, dtype=tdt, device=r.device)
+        das, dps = [None], []
+        for t in range(n_int):
+            if t == 0:
+                dconv = spread_a[0]
+            else:
+                da = (cross[t].T @ d_u[: t * k].view(t * k, nc)).view(k, n, c)
+                dconv = torch.baddbmm(spread_a[t], mats_t[t], da)
+                das.append(da)
+            dp = (wcs[t].T @ dconv.view(k, nc)).view(k, n, c)
+            torch.mul(node_sp[t][0], dp, out=d_u[t * k : (t + 1) * k])
+            dps.append(dp)
+        dz1 = (w_out.T @ d_u.view(-1, nc)).view(-1, n, c)
+        dz2 = (wh1_t.T @ (node_s1 * dz1).view(-1, nc)).view(-1, n, c)
+        back = (wh1_t @ (node_c2 * dz2).view(-1, nc)).view(-1, n, c)
+        dgz1 = torch.addcmul(node_s1 * back, node_c1, dz1)
+        dg_u = (w_out @ dgz1.view(-1, nc)).view(-1, n, c)
+        dgconvs = [None] * n_int
+        for t in reversed(range(n_int)):
+            dgp = torch.addcmul(node_sp[t][0] * dg_u[t * k : (t + 1) * k], node_sp[t][1], dps[t])
+            dgconvs[t] = (wcs[t] @ dgp.view(k, nc)).view(k, n, c)
+            if t > 0:
+                dga = torch.baddbmm(spread_g[t - 1], mats_t[t], dgconvs[t]).view(k, nc)
+                dg_u[: t * k].view(t * k, nc).addmm_(cross[t], dga)
+        return dgconvs, das
+
+    def contract(dgconvs: list, das: list, spread_a: list, spread_g: list) -> torch.Tensor:
+        """``H[m, x] = sum_t dgconv_t[m] . A_t[x] + da_t[m] . B_t[x]``."""
+        out = dgconvs[0].view(-1, dgconvs[0].shape[2]).T @ spread_a[0].view(k * n, -1)
+        for t in range(1, n_int):
+            out.addmm_(dgconvs[t].view(k * n, -1).T, spread_a[t].view(k * n, -1))
+            out.addmm_(das[t].view(k * n, -1).T, spread_g[t - 1].view(k * n, -1))
+        return out
+
+    # directions in chunks so that the ~30 (K, N, chunk) tangent arrays stay within budget
+    chunk = max(1, min(m_dir, max_numbers // (30 * k * n)))
+    chunks = [slice(c, min(c + chunk, m_dir)) for c in range(0, m_dir, chunk)]
+    if len(chunks) == 1:
+        spread_a, spread_g = spreads(chunks[0])
+        hess = contract(*directions(spread_a, spread_g), spread_a, spread_g)
+    else:
+        hess = torch.empty(m_dir, m_dir, dtype=tdt, device=r.device)
+        for rows in chunks:
+            own = spreads(rows)
+            dgconvs, das = directions(*own)
+            for cols in chunks:
+                other = own if cols == rows else spreads(cols)
+                hess[rows, cols] = contract(dgconvs, das, *other)
     hess = hess.to(dt) + jac.T @ (curv_r[:, None] * jac)
     return grad_r, hess
