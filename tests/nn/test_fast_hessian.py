@@ -169,3 +169,14 @@ def test_schnet_hessian_chunks():
                                      max_numbers=30 * model.config.n_filters * g.n_particles * 7)
     assert torch.equal(g1, g2)
     assert float((h1 - h2).abs().max()) <= 1e-13 * float(h1.abs().max())
+
+
+def test_subclass_energy_uses_reference():
+    """A model class with its own energy (toy springs) is differentiated as it is."""
+    from tests.response.toy import spring_model
+
+    s = water_crystal()
+    model = spring_model(s, core_cutoff=3.5, pair_cutoff=2.0)
+    _, h = extended_hessian(model, s)
+    _, h_ref = extended_hessian(model, s, method="reference")
+    assert torch.equal(h, h_ref)
