@@ -117,7 +117,7 @@ def extended_hessian(
       (:func:`~emlpack.nn.electrostatics.coulomb_molecular_hessian`) or reciprocal Ewald in
       fractional coordinates and cell
       (:func:`~emlpack.nn.electrostatics.ewald_reciprocal_hessian_fractional`);
-    * the field term (linear in the field) by autograd of that term alone.
+    * the field term (linear in the field): its blocks written out.
 
     ``mixed=True`` (fast method only, opt-in): the SchNet directional derivatives in float32,
     1.3-1.6x faster again. Measured largest relative changes of the reported tensors
@@ -133,11 +133,11 @@ def extended_hessian(
     included); the field rows follow from symmetry and the field-field block is exactly 0.
     ``method="vmap"``: every row by ``torch.func.hessian`` (forward over reverse, vectorised).
     """
-    energy, x0 = _energy_function(model, structure, dtype)
     if method == "fast":
         if _standard_energy(model):
             return _extended_hessian_fast(model, structure, dtype, mixed)
         method = "reference"  # a subclass with its own energy: differentiate it as it is
+    energy, x0 = _energy_function(model, structure, dtype)
     if method == "vmap":
         x = x0.clone().requires_grad_(True)
         grad = torch.autograd.grad(energy(x), x)[0]

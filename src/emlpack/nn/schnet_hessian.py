@@ -17,9 +17,9 @@ with ``r`` the E half-list edge lengths and ``J = dr/dx`` (E, m):
   in node space; the filter derivatives enter only through the sparse ``J``
   (``A_t = S(w'_t a_t)``, ``B_t = S(w'_t g_t)`` below), so no m x E x K tensor is formed.
 
-Cost: about ``m N (2 F^2 + 3 F F/2 + ...)`` multiply-adds in dense products (F = 4 K for the
-folded output layer) instead of m reverse passes through the filter network; memory
-``~ 10 m N K`` numbers for the tangents.
+Cost: about ``m N (2 F^2 + F^2 + ...)`` multiply-adds in dense products (F = 4 K, the folded
+output layer's width, 512 in the paper's model) instead of m reverse passes through the filter
+network; memory ``~45 K N c`` numbers for a chunk of c directions (tangents and spreads).
 """
 
 from __future__ import annotations
@@ -32,12 +32,8 @@ from emlpack.nn.schnet import SchNet, softplus_slopes
 
 
 def _node_conv(m: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-    """``conv[..., i, k] = sum_j M[k, i, j] a[..., j, k]`` for ``a`` (N, K) or (B, N, K)."""
-    if a.ndim == 2:
-        return torch.bmm(m, a.T[:, :, None])[:, :, 0].T
-    b, n, k = a.shape
-    out = torch.bmm(m, a.permute(2, 1, 0))  # (K, N, B)
-    return out.permute(2, 1, 0)
+    """``conv[i, k] = sum_j M[k, i, j] a[j, k]`` for node features ``a`` (N, K)."""
+    return torch.bmm(m, a.T[:, :, None])[:, :, 0].T
 
 
 def _padded_groups(side: torch.Tensor, n: int, n_edges: int) -> torch.Tensor:
@@ -81,7 +77,7 @@ def schnet_edge_hessian(
     m_dir = jac.shape[1]
     softplus = nn.functional.softplus
     # ---------------------------------------------------------------- value and gradient
-    mats, acts = [], []  # per interaction: M (K, N, N); (a, p, u)
+    mats, acts = [], []  # per interaction: M (K, N, N); (a, p)
     idx_pairs = torch.cat([i * n + j, j * n + i])
     us = []
     for t, (_, _, _, _, wc, bc) in enumerate(fw["filters"]):
