@@ -125,11 +125,7 @@ class EMLP(nn.Module):
         cell = g.cell if cell is None else cell
         field = g.field if field is None else field
         i, j = g.edge_i, g.edge_j
-        d = pos[j] - pos[i]
-        if g.edge_shift.numel():
-            d = d + torch.einsum("ea,eab->eb", g.edge_shift, cell[g.batch[i]])
-        r = torch.sqrt((d * d).sum(-1) + 1e-20)
-        atomic = self.schnet(g.numbers, r, i, j)
+        atomic = self.schnet(g.numbers, self.edge_lengths(g, pos, cell), i, j)
         b = g.n_structures
         e_sr = segment_sum(atomic, g.batch, b)
         c = self.config
@@ -148,6 +144,21 @@ class EMLP(nn.Module):
             "energy_field": e_field,
             "atomic_energies": atomic,
         }
+
+    @staticmethod
+    def edge_vectors(g: Graph, positions: torch.Tensor, cell: torch.Tensor) -> torch.Tensor:
+        """Vectors ``r_j - r_i`` (+ image shift) of the half-list SchNet edges (Å), (E, 3)."""
+        i, j = g.edge_i, g.edge_j
+        d = positions[j] - positions[i]
+        if g.edge_shift.numel():
+            d = d + torch.einsum("ea,eab->eb", g.edge_shift, cell[g.batch[i]])
+        return d
+
+    @classmethod
+    def edge_lengths(cls, g: Graph, positions: torch.Tensor, cell: torch.Tensor) -> torch.Tensor:
+        """Lengths (Å) of the half-list SchNet edges, ``sqrt(|d|^2 + 1e-20)``, (E,)."""
+        d = cls.edge_vectors(g, positions, cell)
+        return torch.sqrt((d * d).sum(-1) + 1e-20)
 
     def energy(self, g: Graph, positions=None, cell=None, field=None) -> torch.Tensor:
         """Total energy (eV) per structure."""

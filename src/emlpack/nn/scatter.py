@@ -16,3 +16,14 @@ def segment_sum(values: torch.Tensor, index: torch.Tensor, n: int) -> torch.Tens
     if values.dim() == 1:
         return out.scatter_add(0, index, values)
     return out.scatter_add(0, index.view(-1, *([1] * (values.dim() - 1))).expand_as(values), values)
+
+
+def pair_blocks_to_matrix(
+    blocks: torch.Tensor, i: torch.Tensor, j: torch.Tensor, n: int
+) -> torch.Tensor:
+    """(3n, 3n) Hessian of ``sum_e f_e(x_j - x_i)`` from the (E, 3, 3) Hessians ``blocks`` of
+    every term in its pair vector: ``+B`` on the (i, i) and (j, j) blocks, ``-B`` on (i, j)
+    and (j, i) (``B`` symmetric; terms with ``i == j`` cancel)."""
+    index = torch.cat([i * (n + 1), j * (n + 1), i * n + j, j * n + i])
+    out = segment_sum(torch.cat([blocks, blocks, -blocks, -blocks]), index, n * n)
+    return out.reshape(n, n, 3, 3).permute(0, 2, 1, 3).reshape(3 * n, 3 * n)

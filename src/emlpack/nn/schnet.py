@@ -34,6 +34,13 @@ def shifted_softplus(x: torch.Tensor) -> torch.Tensor:
     return nn.functional.softplus(x) - LN2
 
 
+def softplus_slopes(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """First and second derivatives of ``softplus(x)`` as torch's autograd takes them
+    (threshold 20: slope 1 above, curvature 0 from 20 on)."""
+    sig = torch.sigmoid(x)
+    return torch.where(x > 20.0, 1.0, sig), torch.where(x >= 20.0, 0.0, sig * (1.0 - sig))
+
+
 def cosine_cutoff(r: torch.Tensor, cutoff: float, transition: float) -> torch.Tensor:
     """1 below ``cutoff - transition``, cosine switch to 0 at ``cutoff`` (Å): the formula of
     :func:`emlpack.geometry.cosine_cutoff` on tensors."""
@@ -159,7 +166,10 @@ class SchNet(nn.Module):
     # replaces 2 L F K + F^2 multiply-adds by L (L - 1) K^2 / 2 + L K F (paper model: 1.05M ->
     # 0.36M, about a quarter of the model's work). The products are formed in float64 once per
     # parameter version and cached; the result equals the plain evaluation up to rounding.
-    def _folded_weights(self, dtype: torch.dtype, device) -> dict:
+    def folded_weights(self, dtype: torch.dtype, device) -> dict:
+        """The frozen-weight tables and matrices described above (cached per parameter
+        version): ``tables``, ``cross``, ``table_out``, ``w_out``, ``filters`` (per interaction
+        ``(w1, b1, w2, b2, wc, bc)``, ``wc`` divided by the message norm) and ``heads``."""
         params = list(self.parameters())
         key = (dtype, str(device), tuple((id(p), p._version, p.data_ptr()) for p in params))
         cache = getattr(self, "_fold_cache", None)
@@ -220,8 +230,48 @@ class SchNet(nn.Module):
         self._fold_cache = (key, out)
         return out
 
+    def filter_taylor(self, r: torch.Tensor) -> list[tuple[torch.Tensor, ...]]:
+        """Filters of every interaction and their first and second derivatives in the edge
+        length, ``(W, dW/dr, d2W/dr2)`` each (E, K), at the edge lengths ``r`` (Å).
+
+        ``W(r0) + W'(r0) (r - r0) + W''(r0) (r - r0)^2 / 2`` is the filters' exact second-order
+        Taylor expansion: a function of ``r`` through it has the same value, gradient and
+        Hessian at ``r0`` as through the filter network (used by
+        :mod:`emlpack.nn.schnet_hessian`). Softplus derivatives follow torch's threshold
+        (``x > 20``: slope 1, curvature 0), so they equal autograd's exactly.
+        """
+        fw = self.folded_weights(r.dtype, r.device)
+        width = self.rbf.width
+        diff = r[:, None] - self.rbf.centers.to(r.dtype)
+        rbf = torch.exp(-0.5 * (diff / width) ** 2)
+        rbf1 = -diff / width**2 * rbf
+        rbf2 = ((diff / width**2) ** 2 - 1.0 / width**2) * rbf
+        start, tr = self.cutoff - self.cutoff_transition, self.cutoff_transition
+        x = (r - start) / tr
+        inside = (x >= 0.0) & (x <= 1.0)
+        xc = torch.clamp(x, 0.0, 1.0)
+        fc = (0.5 * (1.0 + torch.cos(math.pi * xc)))[:, None]
+        fc1 = torch.where(inside, -0.5 * math.pi / tr * torch.sin(math.pi * xc), 0.0)[:, None]
+        fc2 = torch.where(inside, -0.5 * (math.pi / tr) ** 2 * torch.cos(math.pi * xc), 0.0)
+        fc2 = fc2[:, None]
+        out = []
+        for w1, b1, w2, b2, _, _ in fw["filters"]:
+            z1 = torch.addmm(b1, rbf, w1)
+            s1, c1 = softplus_slopes(z1)
+            z1d, z1dd = rbf1 @ w1, rbf2 @ w1
+            y1 = nn.functional.softplus(z1)
+            z2 = torch.addmm(b2, y1, w2)
+            z2d = (s1 * z1d) @ w2
+            z2dd = (c1 * z1d * z1d + s1 * z1dd) @ w2
+            s2, c2 = softplus_slopes(z2)
+            y2 = nn.functional.softplus(z2) - LN2
+            y2d = s2 * z2d
+            y2dd = c2 * z2d * z2d + s2 * z2dd
+            out.append((y2 * fc, y2d * fc + y2 * fc1, y2dd * fc + 2.0 * y2d * fc1 + y2 * fc2))
+        return out
+
     def _forward_folded(self, numbers, rbf, fcut, i, j) -> torch.Tensor:
-        fw = self._folded_weights(rbf.dtype, rbf.device)
+        fw = self.folded_weights(rbf.dtype, rbf.device)
         softplus = nn.functional.softplus
         fc = fcut[:, None]
         shift = fc * -LN2
