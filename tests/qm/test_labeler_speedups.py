@@ -1,5 +1,6 @@
-"""The labeler's speed-ups (AO cache, XC gradient through the occupied orbitals, max_memory)
-give the labels of plain PySCF within the campaign's tolerances (1e-5 eV, 1e-4 eV/Å, 1e-4 Å)."""
+"""The labeler's speed-ups (AO cache, XC gradient through the occupied orbitals, max_memory,
+reused heap) give the labels of plain PySCF within the campaign's tolerances (1e-5 eV,
+1e-4 eV/Å, 1e-4 Å)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import pytest
 
 from emlpack.io.extxyz import read_reference_frames as read_frames
 from emlpack.qm.levels import PAPER, Level
-from emlpack.qm.pyscf_labeler import PySCFLabeler, caching_numint
+from emlpack.qm.pyscf_labeler import PySCFLabeler, caching_numint, reused_heap
 from emlpack.units import FIELD_AU_IN_V_PER_A
 from tests.conftest import shared_path
 
@@ -16,7 +17,7 @@ from tests.conftest import shared_path
 TOL_E, TOL_F, TOL_C = 1e-5, 1e-4, 1e-4
 
 #: settings of PySCF as it comes (the labeler before the speed-ups)
-PLAIN = {"ao_cache_mb": 0, "max_memory_mb": None, "fast_xc_gradient": False}
+PLAIN = {"ao_cache_mb": 0, "max_memory_mb": None, "fast_xc_gradient": False, "reuse_heap": False}
 
 METHANOL = (
     np.array([6, 8, 1, 1, 1, 1]),
@@ -75,6 +76,19 @@ def test_caching_numint_blocks_equal_plain_blocks():
     assert 0 < len(ni._blocks) < blocks
     ni.clear()
     assert not ni._blocks
+
+
+def test_reused_heap_is_reentrant_and_restores():
+    """Large arrays inside and after the block are ordinary arrays; an error passes through."""
+    for _ in range(2):
+        with reused_heap():
+            a = np.ones(5_000_000)
+            del a
+            b = np.full(5_000_000, 2.0)
+            assert b.sum() == 1e7
+    with pytest.raises(ValueError), reused_heap():
+        raise ValueError("passes through")
+    assert np.zeros(5_000_000).sum() == 0.0
 
 
 @pytest.mark.slow

@@ -42,9 +42,10 @@ BOYS_SPREAD_TOL = 1e-4
 CORE_CENTRE_MAX_DISTANCE = 0.3
 #: default memory (MB) for atomic-orbital values on the DFT grid kept between SCF cycles
 AO_CACHE_MB = 2048
-#: default PySCF ``max_memory`` (MB): large enough that the density-fitting tensor of a
-#: 20-atom molecule (about 2 GB) is held in memory beside the AO cache, not on disk
-MAX_MEMORY_MB = 12000
+#: default PySCF ``max_memory`` (MB): the density-fitting tensor of a 20-atom molecule
+#: (1.8 GB) is built after the AO cache is filled and must still be held in memory (PySCF
+#: keeps it when it needs less than 90 % of ``max_memory`` minus the memory in use)
+MAX_MEMORY_MB = 8000
 
 
 class LabelingError(EmlpackError, RuntimeError):
@@ -467,6 +468,9 @@ class PySCFLabeler:
                 )
             mf = mf2
         res.scf_cycles = cycles
+        clear = getattr(mf._numint, "clear", None)
+        if clear is not None:
+            clear()  # the AO cache is for the SCF; the gradient needs second derivatives
         res.energy = float(energy) * HARTREE
         with mol.with_common_origin((0.0, 0.0, 0.0)):
             dip_ints = mol.intor_symmetric("int1e_r", comp=3)
