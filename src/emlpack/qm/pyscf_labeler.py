@@ -201,8 +201,8 @@ def caching_numint(budget_mb: float):
         def block_loop(self, mol, grids, nao=None, deriv=0, max_memory=2000,
                        non0tab=None, blksize=None, buf=None):
             plain = (deriv != self.cached_deriv or non0tab is not None or blksize is not None
-                     or buf is not None or grids.coords is None or mol is not grids.mol
-                     or self.budget_bytes <= 0)
+                     or buf is not None or grids.coords is None or grids.non0tab is None
+                     or mol is not grids.mol or self.budget_bytes <= 0)
             if plain:
                 yield from super().block_loop(mol, grids, nao, deriv, max_memory, non0tab,
                                               blksize, buf)
@@ -492,7 +492,9 @@ class PySCFLabeler:
         """dE/dR (Hartree/bohr) including the field terms PySCF's gradient does not know."""
         g = mf.nuc_grad_method()
         g.verbose = 0
-        fast_xc = (self.fast_xc_gradient and mf._numint._xc_type(mf.xc) == "GGA"
+        from pyscf.dft import libxc
+
+        fast_xc = (self.fast_xc_gradient and libxc.xc_type(mf.xc) == "GGA"
                    and not mf.do_nlc() and not g.grid_response)
         if fast_xc:
             xc = xc_nuclear_gradient(mf)
