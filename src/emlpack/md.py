@@ -39,8 +39,10 @@ pairs of the last good step moved rigidly with their nearest cores, then from
 Outputs in the directory ``output``: ``trajectory.xyz`` (native extxyz, one frame per recorded
 step, pairs as ``Es`` rows; see :func:`frame_structure` for the ``info`` keys), ``checkpoint.npz``
 (full integrator, thermostat and pair state, written atomically with the byte length of the
-trajectory it belongs to), ``md.log`` and ``summary.json``. Re-running the same call resumes from
-the checkpoint (a partial trailing frame is cut off) and continues the same trajectory.
+trajectory it belongs to) and ``summary.json``; progress and watchdog events go to
+the module's logger (``emlp md`` writes them to ``md.log``). Re-running the same
+call resumes from the checkpoint (a partial trailing frame is cut off) and continues the same
+trajectory.
 """
 
 from __future__ import annotations
@@ -67,9 +69,10 @@ from ase.md.velocitydistribution import (
 )
 from ase.md.verlet import VelocityVerlet
 
+from emlpack._files import atomic_write, write_npz_atomic
 from emlpack.calculator import EMLPCalculator
 from emlpack.errors import EmlpackError
-from emlpack.io.extxyz import atomic_write, write_structures
+from emlpack.io.extxyz import write_structures
 from emlpack.nn.checkpoint import load_model
 from emlpack.nn.potential import EMLP
 from emlpack.pairs.checks import MAX_CORE_DISTANCE, MD_MIN_PAIR_DISTANCE, check_pairs
@@ -88,8 +91,12 @@ __all__ = [
 
 TRAJECTORY = "trajectory.xyz"
 CHECKPOINT = "checkpoint.npz"
+#: the log file ``emlp md`` writes in the output folder (the library itself only logs to
+#: ``logging.getLogger(__name__)``; the CLI installs the handlers)
 LOG = "md.log"
 SUMMARY = "summary.json"
+
+_log = logging.getLogger(__name__)
 
 
 class MDWatchdogError(EmlpackError, RuntimeError):
@@ -161,7 +168,6 @@ def run_md(
     extrapolation: int = 3,
     guess_method: str = "auto",
     callback: Callable[[int, Atoms, EMLPCalculator], None] | None = None,
-    logger: logging.Logger | None = None,
 ) -> MDResult:
     """Run (or resume) Born-Oppenheimer MD of ``structure`` for ``steps`` steps in total.
 
@@ -170,7 +176,7 @@ def run_md(
         structure: start (cores; pairs may be empty: guessed and relaxed). Velocities (Å/fs)
             in ``structure.info["velocities"]`` (flat or (N, 3)) are used when present.
         steps: total number of MD steps (a resumed run continues up to it).
-        output: output directory (trajectory, checkpoint, log, summary).
+        output: output directory (trajectory, checkpoint, summary).
         dt_fs: time step (fs).
         temperature_K: NVT target and initial Maxwell-Boltzmann temperature (K); ``None``
             starts at rest (NVE only).
@@ -195,7 +201,7 @@ def run_md(
     watchdog = watchdog or Watchdog()
     out_dir = Path(output)
     out_dir.mkdir(parents=True, exist_ok=True)
-    log = logger or _file_logger(out_dir / LOG)
+    log = _log
     if isinstance(model, (str, Path)):
         model = load_model(model, torch.float64)
     model = model.double().eval()
@@ -312,11 +318,7 @@ class _Run:
             "has_coupling": c["coupling"] is not None, "model_error": c["model_error"],
         }
         arrays["meta"] = np.array(json.dumps(meta))
-        tmp = self.ckpt.with_name(f".{CHECKPOINT}.tmp.npz")
-        np.savez(tmp, **arrays)
-        with open(tmp, "rb") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, self.ckpt)
+        write_npz_atomic(self.ckpt, **arrays)
 
     def load_checkpoint(self) -> bool:
         if not self.ckpt.exists():
@@ -553,19 +555,4 @@ class _Run:
 def _jsonable(obj):
     return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist")
                                  else float(o)))
-
-
-def _file_logger(path: Path) -> logging.Logger:
-    log = logging.getLogger(f"emlpack.md.{path.resolve()}")
-    log.setLevel(logging.INFO)
-    log.propagate = False
-    if not log.handlers:
-        fmt = logging.Formatter("%(asctime)s %(levelname)s %(message)s")
-        fh = logging.FileHandler(path)
-        fh.setFormatter(fmt)
-        log.addHandler(fh)
-        sh = logging.StreamHandler()
-        sh.setFormatter(fmt)
-        log.addHandler(sh)
-    return log
 
