@@ -5,23 +5,21 @@ constant 100 fs as yaff's defaults, or ``VelocityVerlet`` for NVE) on an
 :class:`~emlpack.calculator.EMLPCalculator` whose pair solver
 (:mod:`emlpack.pairs.solvers`) relaxes the electron pairs at every new core geometry:
 
-* ``relax="warm"`` (default, :class:`~emlpack.pairs.solvers.WarmStartSolver`): the pairs are
-  extrapolated from the last four relaxed steps (cubic in the offsets of each pair from its
-  nearest core, so pairs follow their cores) and
-  relaxed by a quasi-Newton method whose pair-Hessian model is carried over from step to step
-  (rotated with the molecule, refined by damped BFGS updates, replaced by the exact pair Hessian
-  at the start and every ``curvature_every`` steps); tight tolerance (``fmax`` 1e-5 eV/Å), so
-  the forces are Born-Oppenheimer forces and NVE conserves energy. Measured: about 4
-  energy+gradient evaluations per step at dt = 0.5 fs (the pair Hessian changes by ~2 % per
-  step, so the carried model converges linearly, ~20x per iteration); see docs/md.md.
-* ``relax="corrected"``: ``"warm"`` plus a final Newton correction without an evaluation:
-  a secant (Broyden) model ``C`` of the core-pair Hessian block is carried like the pair
-  Hessian (exact at the refreshes, from the same Hessian-vector products), and the loop stops
-  when (largest relative model error measured in this and the last step) x (largest pair-force
-  component) < ``fmax``, i.e. when the pairs after one more model Newton step ``s = -H^-1 g``
-  would be converged; the result is then pairs + s, energy + g.s + s.H.s/2 and core gradient
-  g_c + C s. About 3.5 evaluations per step (hexane); per-step core forces as accurate as
-  ``"warm"`` at the same ``fmax`` (benchmarks/md.py measures it against tightly relaxed pairs).
+* ``relax="corrected"`` (default, :class:`~emlpack.pairs.solvers.WarmStartSolver`): the pairs
+  and cores of the last four relaxed steps are extrapolated (cubic) and the pairs get the linear
+  response to the cores' extrapolation error, ``dp = -H^-1 C^T dc``; then a quasi-Newton
+  method whose models of the pair Hessian ``H`` and of the core-pair block ``C`` are carried
+  over from step to step (rotated with the molecule, refined by damped BFGS / Broyden updates
+  from every evaluation, exact at a fresh start and when the measured model error exceeds
+  0.5). The loop stops when (largest relative model error measured in this and the last step)
+  x (largest pair-force component) < ``fmax`` (1e-5 eV/Å), i.e. when one more model Newton
+  step ``s = -H^-1 g`` would converge the pairs; that step is applied without an evaluation:
+  pairs + s, energy + g.s + s.H.s/2, core gradient g_c + C s. Measured (hexane, trained
+  benchmark model, dt 0.5 fs): about 2.3 energy+gradient evaluations per step, per-step core
+  forces as accurate as ``"warm"`` at the same ``fmax`` (benchmarks/md.py; docs/md.md).
+* ``relax="warm"``: the pairs' offsets from their nearest cores extrapolated (cubic) and the
+  same carried-Hessian quasi-Newton without the coupling model and the final correction,
+  stopped at largest pair-force component < ``fmax`` (about 3.4 evaluations per step).
 * ``relax="paper"`` (:class:`~emlpack.pairs.solvers.BoxedLBFGSB`): the reference code's
   scheme, SciPy L-BFGS-B from the previous pairs with every pair coordinate boxed to ±3x the
   largest core displacement since the last step
@@ -29,7 +27,8 @@ constant 100 fs as yaff's defaults, or ``VelocityVerlet`` for NVE) on an
 
 A :class:`Watchdog` checks every step (relaxation converged, no two pairs closer than
 ``min_pair_distance``, no pair farther than ``max_core_distance`` from every core, and every
-``curvature_every`` steps a positive-definite exact pair Hessian;
+``curvature_every`` steps a positive smallest eigenvalue of the exact pair Hessian: Davidson
+iterations on finite-difference Hessian-vector products, preconditioned by the carried model;
 :func:`emlpack.pairs.checks.check_pairs` with the watchdog's thresholds). A failed step is
 rolled back (positions, momenta, thermostat, calculator and solver state) and retried from the
 pairs of the last good step moved rigidly with their nearest cores, then from
@@ -158,7 +157,7 @@ def run_md(
     seed: int = 0,
     tdamp_fs: float = 100.0,
     tchain: int = 3,
-    relax: str = "warm",
+    relax: str = "corrected",
     fmax: float = 1e-5,
     record_every: int = 1,
     checkpoint_every: int = 10,
@@ -183,7 +182,7 @@ def run_md(
         ensemble: ``"nvt"`` (Nosé-Hoover chain, ``tchain``, ``tdamp_fs``) or ``"nve"``.
         field: homogeneous field (V/Å); default ``structure.field``.
         seed: seed of the initial velocities.
-        relax: ``"warm"``, ``"corrected"`` or ``"paper"`` (see the module docstring).
+        relax: ``"corrected"``, ``"warm"`` or ``"paper"`` (see the module docstring).
         fmax: pair-relaxation tolerance (eV/Å).
         record_every: a trajectory frame every this many steps (step 0 included).
         checkpoint_every: frames are appended and the checkpoint written every this many steps.

@@ -41,9 +41,10 @@ def add_md(sub) -> None:
                    help="K: NVT target and initial velocities")
     p.add_argument("--nve", action="store_true", help="NVE (velocity Verlet) instead of NVT")
     add_field_arguments(p)
-    p.add_argument("--relax", default="warm", choices=["warm", "corrected", "paper"],
-                   help="pair relaxation: warm-started quasi-Newton, the same with a final"
-                   " Newton correction (corrected) or the paper's boxed L-BFGS-B")
+    p.add_argument("--relax", default="corrected", choices=["corrected", "warm", "paper"],
+                   help="pair relaxation: warm-started quasi-Newton with a final Newton"
+                   " correction (corrected, default), the same without it (warm) or the"
+                   " paper's boxed L-BFGS-B")
     p.add_argument("--fmax", type=float, default=1e-5, help="pair-force tolerance, eV/Å")
     p.add_argument("--tdamp", type=float, default=100.0, help="thermostat time constant, fs")
     p.add_argument("--record-every", type=int, default=1, help="a frame every N steps")
