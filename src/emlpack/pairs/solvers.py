@@ -199,11 +199,9 @@ class WarmStartSolver:
         """Extrapolated pairs (Å) at the cores ``cores`` (needs a history): the offsets of every
         pair from its nearest core (assignment of the newest step) extrapolated to order
         ``extrapolation`` (0: rigid, 1: linear, 2: quadratic, 3: cubic, 4: quartic)."""
-        nearest = nearest_cores(self.history[-1][1], self.history[-1][0])
-        offsets = [p - c[nearest] for c, p in self.history]
-        order = min(self.extrapolation, len(offsets) - 1)
+        order = min(self.extrapolation, len(self.history) - 1)
         coefficients = _EXTRAPOLATION[order]
-        m = offsets[0].size
+        m = self.history[-1][1].size
         if (self.correct and order > 0 and self.coupling is not None
                 and self.hessian is not None and self.coupling.shape == (cores.size, m)):
             # extrapolate pairs and cores alike, then the linear response of the pairs to the
@@ -214,6 +212,8 @@ class WarmStartSolver:
             rhs = self.coupling.T @ (cores - c_ex).reshape(-1)
             dp = -_floored_solve(self.hessian, rhs)
             return p_ex + dp.reshape(-1, 3)
+        nearest = nearest_cores(self.history[-1][1], self.history[-1][0])
+        offsets = [p - c[nearest] for c, p in self.history]
         offset = sum(w * o for w, o in zip(coefficients, offsets[-order - 1:], strict=True))
         return cores[nearest] + offset
 
