@@ -9,19 +9,27 @@ then pairs and geometry optimised with the model; a trained model (``--model``, 
 NVT 300 K (Nosé-Hoover chain 3, 100 fs), dt 0.5 fs, the same seed and start for both
 methods, float64, one thread.
 
+* ``corrected`` (the default of ``run_md``): cubic extrapolation of pairs and cores plus the
+  linear response of the pairs to the cores' extrapolation error, quasi-Newton with carried
+  models of the pair Hessian and the core-pair block, stopped by the model-error rule and
+  finished by a Newton correction without an evaluation; the watchdog's curvature check
+  (Davidson on finite-difference Hessian-vector products) every ``--curvature-every`` steps.
 * ``warm``: ``run_md(relax="warm")``: cubic extrapolation of the pairs in the frame of their
-  nearest cores, quasi-Newton with the pair-Hessian model carried over from step to step, exact
-  pair Hessian (also the watchdog's curvature check) every ``--curvature-every`` steps.
+  nearest cores, quasi-Newton with the pair-Hessian model carried over from step to step, the
+  same curvature check.
 * ``paper``: ``run_md(relax="paper")``: SciPy L-BFGS-B from the previous pairs, each coordinate
   boxed to ±3x the largest core displacement of the last step, gtol 1e-5 eV/Å (the reference's
   scheme); no curvature checks (pure baseline).
 
 Both converge to the same criterion: largest |pair-force component| < 1e-5 eV/Å. Reported per
-step (step 0, the initial relaxation, excluded): evaluations, exact pair Hessians, wall time;
-the conserved-energy drift and largest jump between steps (eV). Goal: warm <= 3
-evaluations/step and >= 5x less time per step than paper.
+step (step 0, the initial relaxation, excluded): evaluations, curvature checks
+(``hessians_per_step``; their evaluations are not in the evaluation count, their time is in the
+times), wall and CPU time; the conserved-energy range, drift and largest jump between steps
+(eV), and the per-step BO errors against tightly relaxed pairs. Goal (issue 14):
+<= 2.5 evaluations/step and >= 5x less time per step than paper, at the same tolerance.
 
 Usage: OMP_NUM_THREADS=1 python benchmarks/md.py --json benchmarks/results/md.json
+       [--model benchmarks/fixtures/eqm7_small_trained.pt]
 """
 
 from __future__ import annotations
@@ -182,7 +190,7 @@ def main() -> int:
             / w["evaluations_per_step"],
             "time_ratio_paper_over_mode": ratio_t,
             "cpu_time_ratio_paper_over_mode": ratio_cpu,
-            "goal_evaluations_le_3": w["evaluations_per_step"] <= 3.0,
+            "goal_evaluations_le_2_5": w["evaluations_per_step"] <= 2.5,
             "goal_time_ratio_ge_5": ratio_t >= 5.0,
             "goal_cpu_time_ratio_ge_5": ratio_cpu >= 5.0,
         }

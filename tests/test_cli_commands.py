@@ -228,6 +228,11 @@ def test_md_writes_trajectory_settings_and_warnings(md_run):
     assert settings["steps"] == 10 and settings["field_source"] == "none"
     assert "warnings" in json.loads((out / "warnings.json").read_text())
     assert "10 steps" in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["steps"] == 10 and summary["energy_scale"] == "model"  # no hydride reference
+    assert summary["energy_eV"] == pytest.approx(frames[-1].info["potential_energy"])
+    assert summary["final_conserved_energy_eV"] == pytest.approx(
+        frames[-1].info["conserved_energy"])
     import ase.io
 
     atoms = ase.io.read(out / "trajectory_atoms.xyz", ":")

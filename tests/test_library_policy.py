@@ -11,8 +11,6 @@ from pathlib import Path
 SRC = Path(__file__).resolve().parents[1] / "src" / "emlpack"
 #: modules that talk to the user directly: the command line and the demo's progress report
 PRINTING = ("cli/", "demo.py")
-#: md.py still installs its own file logger (being moved to the CLI in the MD/pairs rework)
-HANDLERS_PENDING = ("md.py",)
 
 
 def _modules():
@@ -51,7 +49,7 @@ def test_the_library_logs_and_only_the_cli_prints():
             if isinstance(node, ast.Name) and node.id == "print" and not rel.startswith(PRINTING):
                 prints.append(f"{rel}:{node.lineno}")  # a call or a print callable default
             if (isinstance(node, ast.Attribute) and node.attr in ("addHandler", "basicConfig")
-                    and not rel.startswith(PRINTING) and rel not in HANDLERS_PENDING):
+                    and not rel.startswith(PRINTING)):
                 handlers.append(f"{rel}:{node.lineno}")
     assert not prints, prints
     assert not handlers, handlers

@@ -6,6 +6,8 @@ model whose pairs do not merge, float64, one thread.
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 import torch
@@ -60,8 +62,9 @@ def test_nve_energy_error_shrinks_as_dt_squared(water, tmp_path):
     assert 2.8 < ratio < 5.6, (spread, ratio)  # velocity Verlet: error ~ dt^2 -> 4
 
 
-def test_watchdog_catches_merged_start_pairs_and_recovers(water, tmp_path):
+def test_watchdog_catches_merged_start_pairs_and_recovers(water, tmp_path, caplog):
     model, s = water
+    caplog.set_level(logging.WARNING, logger="emlpack")
     pairs = s.pairs.copy()
     pairs[1] = pairs[0]  # two pairs on top of each other: relaxation keeps them merged
     r = run_md(model, s.copy(pairs=pairs), 4, tmp_path, ensemble="nve", temperature_K=100,
@@ -75,7 +78,8 @@ def test_watchdog_catches_merged_start_pairs_and_recovers(water, tmp_path):
     for f in frames:  # never continues with broken pairs
         d = np.linalg.norm(f.pairs[:, None] - f.pairs[None], axis=-1) + 9 * np.eye(len(f.pairs))
         assert d.min() > 0.2
-    assert "watchdog" in (tmp_path / "md.log").read_text()
+    assert "watchdog" in caplog.text  # logged, not written: the library installs no handler
+    assert not (tmp_path / "md.log").exists()
 
 
 def test_watchdog_rolls_back_a_broken_step(water, tmp_path, monkeypatch):
@@ -228,10 +232,16 @@ def test_nvt_conserved_energy_bounded_and_temperature_near_target(water, tmp_pat
     assert 150 < temps.mean() < 450  # 9 degrees of freedom: loose
 
 
-def test_md_in_a_field(water, tmp_path):
+@pytest.mark.parametrize("relax", ["corrected", "warm"])
+def test_md_in_a_field(water, tmp_path, relax):
     model, s = water
     field = np.array([0.15, -0.1, 0.2])  # V/Å
-    run_md(model, s, 20, tmp_path, ensemble="nve", temperature_K=300, field=field, seed=6)
+    run_md(model, s, 20, tmp_path, ensemble="nve", temperature_K=300, field=field, seed=6,
+           relax=relax)
+    # "warm" reports the model's forces at its last evaluation; "corrected" (the default) the
+    # Newton-corrected pairs and core forces g_c + C s (carried models, no evaluation), whose
+    # residual is estimated, not measured: measured here up to 2.7x fmax (1e-5 eV/Å)
+    force_tol, pair_tol = (1e-5, 2e-5) if relax == "warm" else (3e-5, 5e-5)
     frames = _frames(tmp_path)
     e = _econs(frames)
     assert np.abs(e - e[0]).max() < 2e-3
@@ -241,11 +251,11 @@ def test_md_in_a_field(water, tmp_path):
         out = model.evaluate(f)
         # (the file holds positions to 1e-8 Å)
         assert f.energy == pytest.approx(out["energy"], abs=1e-7)
-        np.testing.assert_allclose(f.forces, out["forces"], atol=1e-5)
+        np.testing.assert_allclose(f.forces, out["forces"], atol=force_tol)
         np.testing.assert_allclose(f.info["dipole"], f.dipole(), atol=1e-7)
         # relaxed pairs: the field's net force on the neutral molecule is zero and the pair
         # forces vanish, so the BO forces on the cores sum to zero
-        assert np.abs(out["pair_forces"]).max() < 2e-5
+        assert np.abs(out["pair_forces"]).max() < pair_tol
         assert np.linalg.norm(f.forces.sum(0)) < 1e-4
     # the field polarises the molecule: the dipole differs from the zero-field relaxation
     assert np.linalg.norm(frames[0].info["dipole"] - s.dipole()) > 1e-3
@@ -326,6 +336,29 @@ def test_corrected_mode_forces_within_tolerance_of_tight_relaxation(water, tmp_p
     assert errors["corrected"][0] <= 2 * errors["warm"][0] + 1e-6, errors
     assert errors["corrected"][1] < 1e-8, errors
     assert runs["corrected"].evaluations_per_step <= runs["warm"].evaluations_per_step
+
+
+@pytest.mark.parametrize("method", ["corrected", "warm"])
+def test_curvature_check_equals_the_exact_smallest_eigenvalue(water, method):
+    """The watchdog's curvature check (Davidson on finite-difference Hessian-vector products,
+    preconditioned by the carried model) gives the smallest eigenvalue of the exact pair
+    Hessian at the result, with far fewer evaluations than the exact blocks (3P + 1)."""
+    from emlpack.pairs.relax import pair_hessian
+    from emlpack.pairs.solvers import WarmStartSolver
+
+    model, s = water
+    solver = WarmStartSolver(method, fmax=1e-6)
+    solver.relax(model, s)  # fresh start: exact blocks
+    rng = np.random.default_rng(5)
+    cores = s.positions + 0.01 * rng.normal(size=s.positions.shape)
+    for k in range(3):  # carried (inexact) models by now
+        moved = s.copy(positions=cores + 0.003 * k, pairs=s.pairs)
+        solver.want_curvature = k == 2
+        result = solver.relax(model, moved)
+    assert result.converged, result.reason
+    exact = np.linalg.eigvalsh(pair_hessian(model, moved.copy(pairs=result.pairs)))[0]
+    assert result.min_curvature == pytest.approx(exact, rel=1e-3)
+    assert result.n_hessians == 1
 
 
 def test_watchdog_thresholds_are_the_documented_ones():

@@ -5,23 +5,21 @@ constant 100 fs as yaff's defaults, or ``VelocityVerlet`` for NVE) on an
 :class:`~emlpack.calculator.EMLPCalculator` whose pair solver
 (:mod:`emlpack.pairs.solvers`) relaxes the electron pairs at every new core geometry:
 
-* ``relax="warm"`` (default, :class:`~emlpack.pairs.solvers.WarmStartSolver`): the pairs are
-  extrapolated from the last four relaxed steps (cubic in the offsets of each pair from its
-  nearest core, so pairs follow their cores) and
-  relaxed by a quasi-Newton method whose pair-Hessian model is carried over from step to step
-  (rotated with the molecule, refined by damped BFGS updates, replaced by the exact pair Hessian
-  at the start and every ``curvature_every`` steps); tight tolerance (``fmax`` 1e-5 eV/Å), so
-  the forces are Born-Oppenheimer forces and NVE conserves energy. Measured: about 4
-  energy+gradient evaluations per step at dt = 0.5 fs (the pair Hessian changes by ~2 % per
-  step, so the carried model converges linearly, ~20x per iteration); see docs/md.md.
-* ``relax="corrected"``: ``"warm"`` plus a final Newton correction without an evaluation:
-  a secant (Broyden) model ``C`` of the core-pair Hessian block is carried like the pair
-  Hessian (exact at the refreshes, from the same Hessian-vector products), and the loop stops
-  when (largest relative model error measured in this and the last step) x (largest pair-force
-  component) < ``fmax``, i.e. when the pairs after one more model Newton step ``s = -H^-1 g``
-  would be converged; the result is then pairs + s, energy + g.s + s.H.s/2 and core gradient
-  g_c + C s. About 3.5 evaluations per step (hexane); per-step core forces as accurate as
-  ``"warm"`` at the same ``fmax`` (benchmarks/md.py measures it against tightly relaxed pairs).
+* ``relax="corrected"`` (default, :class:`~emlpack.pairs.solvers.WarmStartSolver`): the pairs
+  and cores of the last four relaxed steps are extrapolated (cubic) and the pairs get the linear
+  response to the cores' extrapolation error, ``dp = -H^-1 C^T dc``; then a quasi-Newton
+  method whose models of the pair Hessian ``H`` and of the core-pair block ``C`` are carried
+  over from step to step (rotated with the molecule, refined by damped BFGS / Broyden updates
+  from every evaluation, exact at a fresh start and when the measured model error exceeds
+  0.5). The loop stops when (largest relative model error measured in this and the last step)
+  x (largest pair-force component) < ``fmax`` (1e-5 eV/Å), i.e. when one more model Newton
+  step ``s = -H^-1 g`` would converge the pairs; that step is applied without an evaluation:
+  pairs + s, energy + g.s + s.H.s/2, core gradient g_c + C s. Measured (hexane, trained
+  benchmark model, dt 0.5 fs): about 2.3 energy+gradient evaluations per step, per-step core
+  forces as accurate as ``"warm"`` at the same ``fmax`` (benchmarks/md.py; docs/md.md).
+* ``relax="warm"``: the pairs' offsets from their nearest cores extrapolated (cubic) and the
+  same carried-Hessian quasi-Newton without the coupling model and the final correction,
+  stopped at largest pair-force component < ``fmax`` (about 3.4 evaluations per step).
 * ``relax="paper"`` (:class:`~emlpack.pairs.solvers.BoxedLBFGSB`): the reference code's
   scheme, SciPy L-BFGS-B from the previous pairs with every pair coordinate boxed to ±3x the
   largest core displacement since the last step
@@ -29,7 +27,8 @@ constant 100 fs as yaff's defaults, or ``VelocityVerlet`` for NVE) on an
 
 A :class:`Watchdog` checks every step (relaxation converged, no two pairs closer than
 ``min_pair_distance``, no pair farther than ``max_core_distance`` from every core, and every
-``curvature_every`` steps a positive-definite exact pair Hessian;
+``curvature_every`` steps a positive smallest eigenvalue of the exact pair Hessian: Davidson
+iterations on finite-difference Hessian-vector products, preconditioned by the carried model;
 :func:`emlpack.pairs.checks.check_pairs` with the watchdog's thresholds). A failed step is
 rolled back (positions, momenta, thermostat, calculator and solver state) and retried from the
 pairs of the last good step moved rigidly with their nearest cores, then from
@@ -39,8 +38,10 @@ pairs of the last good step moved rigidly with their nearest cores, then from
 Outputs in the directory ``output``: ``trajectory.xyz`` (native extxyz, one frame per recorded
 step, pairs as ``Es`` rows; see :func:`frame_structure` for the ``info`` keys), ``checkpoint.npz``
 (full integrator, thermostat and pair state, written atomically with the byte length of the
-trajectory it belongs to), ``md.log`` and ``summary.json``. Re-running the same call resumes from
-the checkpoint (a partial trailing frame is cut off) and continues the same trajectory.
+trajectory it belongs to) and ``summary.json``; progress and watchdog events go to
+the module's logger (``emlp md`` writes them to ``md.log``). Re-running the same
+call resumes from the checkpoint (a partial trailing frame is cut off) and continues the same
+trajectory.
 """
 
 from __future__ import annotations
@@ -67,9 +68,10 @@ from ase.md.velocitydistribution import (
 )
 from ase.md.verlet import VelocityVerlet
 
+from emlpack._files import atomic_write, write_npz_atomic
 from emlpack.calculator import EMLPCalculator
 from emlpack.errors import EmlpackError
-from emlpack.io.extxyz import atomic_write, write_structures
+from emlpack.io.extxyz import write_structures
 from emlpack.nn.checkpoint import load_model
 from emlpack.nn.potential import EMLP
 from emlpack.pairs.checks import MAX_CORE_DISTANCE, MD_MIN_PAIR_DISTANCE, check_pairs
@@ -88,8 +90,12 @@ __all__ = [
 
 TRAJECTORY = "trajectory.xyz"
 CHECKPOINT = "checkpoint.npz"
+#: the log file ``emlp md`` writes in the output folder (the library itself only logs to
+#: ``logging.getLogger(__name__)``; the CLI installs the handlers)
 LOG = "md.log"
 SUMMARY = "summary.json"
+
+_log = logging.getLogger(__name__)
 
 
 class MDWatchdogError(EmlpackError, RuntimeError):
@@ -151,7 +157,7 @@ def run_md(
     seed: int = 0,
     tdamp_fs: float = 100.0,
     tchain: int = 3,
-    relax: str = "warm",
+    relax: str = "corrected",
     fmax: float = 1e-5,
     record_every: int = 1,
     checkpoint_every: int = 10,
@@ -161,7 +167,6 @@ def run_md(
     extrapolation: int = 3,
     guess_method: str = "auto",
     callback: Callable[[int, Atoms, EMLPCalculator], None] | None = None,
-    logger: logging.Logger | None = None,
 ) -> MDResult:
     """Run (or resume) Born-Oppenheimer MD of ``structure`` for ``steps`` steps in total.
 
@@ -170,14 +175,14 @@ def run_md(
         structure: start (cores; pairs may be empty: guessed and relaxed). Velocities (Å/fs)
             in ``structure.info["velocities"]`` (flat or (N, 3)) are used when present.
         steps: total number of MD steps (a resumed run continues up to it).
-        output: output directory (trajectory, checkpoint, log, summary).
+        output: output directory (trajectory, checkpoint, summary).
         dt_fs: time step (fs).
         temperature_K: NVT target and initial Maxwell-Boltzmann temperature (K); ``None``
             starts at rest (NVE only).
         ensemble: ``"nvt"`` (Nosé-Hoover chain, ``tchain``, ``tdamp_fs``) or ``"nve"``.
         field: homogeneous field (V/Å); default ``structure.field``.
         seed: seed of the initial velocities.
-        relax: ``"warm"``, ``"corrected"`` or ``"paper"`` (see the module docstring).
+        relax: ``"corrected"``, ``"warm"`` or ``"paper"`` (see the module docstring).
         fmax: pair-relaxation tolerance (eV/Å).
         record_every: a trajectory frame every this many steps (step 0 included).
         checkpoint_every: frames are appended and the checkpoint written every this many steps.
@@ -195,7 +200,7 @@ def run_md(
     watchdog = watchdog or Watchdog()
     out_dir = Path(output)
     out_dir.mkdir(parents=True, exist_ok=True)
-    log = logger or _file_logger(out_dir / LOG)
+    log = _log
     if isinstance(model, (str, Path)):
         model = load_model(model, torch.float64)
     model = model.double().eval()
@@ -312,11 +317,7 @@ class _Run:
             "has_coupling": c["coupling"] is not None, "model_error": c["model_error"],
         }
         arrays["meta"] = np.array(json.dumps(meta))
-        tmp = self.ckpt.with_name(f".{CHECKPOINT}.tmp.npz")
-        np.savez(tmp, **arrays)
-        with open(tmp, "rb") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, self.ckpt)
+        write_npz_atomic(self.ckpt, **arrays)
 
     def load_checkpoint(self) -> bool:
         if not self.ckpt.exists():
@@ -553,19 +554,4 @@ class _Run:
 def _jsonable(obj):
     return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist")
                                  else float(o)))
-
-
-def _file_logger(path: Path) -> logging.Logger:
-    log = logging.getLogger(f"emlpack.md.{path.resolve()}")
-    log.setLevel(logging.INFO)
-    log.propagate = False
-    if not log.handlers:
-        fmt = logging.Formatter("%(asctime)s %(levelname)s %(message)s")
-        fh = logging.FileHandler(path)
-        fh.setFormatter(fmt)
-        log.addHandler(fh)
-        sh = logging.StreamHandler()
-        sh.setFormatter(fmt)
-        log.addHandler(sh)
-    return log
 

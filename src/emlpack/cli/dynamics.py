@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 
 from emlpack.cli.common import (
@@ -13,7 +14,8 @@ from emlpack.cli.common import (
     add_quiet_argument,
     add_structure_arguments,
     apply_field,
-    load_model,
+    energy_record,
+    load_member,
     positive,
     read_structure,
     requested_field,
@@ -39,9 +41,10 @@ def add_md(sub) -> None:
                    help="K: NVT target and initial velocities")
     p.add_argument("--nve", action="store_true", help="NVE (velocity Verlet) instead of NVT")
     add_field_arguments(p)
-    p.add_argument("--relax", default="warm", choices=["warm", "corrected", "paper"],
-                   help="pair relaxation: warm-started quasi-Newton, the same with a final"
-                   " Newton correction (corrected) or the paper's boxed L-BFGS-B")
+    p.add_argument("--relax", default="corrected", choices=["corrected", "warm", "paper"],
+                   help="pair relaxation: warm-started quasi-Newton with a final Newton"
+                   " correction (corrected, default), the same without it (warm) or the"
+                   " paper's boxed L-BFGS-B")
     p.add_argument("--fmax", type=float, default=1e-5, help="pair-force tolerance, eV/Å")
     p.add_argument("--tdamp", type=float, default=100.0, help="thermostat time constant, fs")
     p.add_argument("--record-every", type=int, default=1, help="a frame every N steps")
@@ -73,7 +76,8 @@ def add_md(sub) -> None:
             positive(getattr(args, name), "--" + name.replace("_", "-"))
         set_threads(args.threads)
         log = Log(args.quiet)
-        model = load_model(args.model)
+        member = load_member(args.model, "emlp md")
+        model = member.model
         s, where = read_structure(args, model, log, periodic=False, command="emlp md")
         s, field_info = apply_field(s, args, where, log)
         out = Path(args.output)
@@ -81,7 +85,7 @@ def add_md(sub) -> None:
         resolved = {**settings(args), **field_info, "structure": where}
         if args.no_resume or not (out / "settings.json").exists():
             write_json(out / "settings.json", resolved)
-        logger = _md_logger(out, args.quiet)
+        handlers = _md_log_handlers(out, args.quiet)
         try:
             result = run_md(
                 model, s, args.steps, out, dt_fs=args.dt, temperature_K=args.temperature,
@@ -90,7 +94,7 @@ def add_md(sub) -> None:
                 seed=args.seed, tdamp_fs=args.tdamp, relax=args.relax, fmax=args.fmax,
                 record_every=args.record_every, checkpoint_every=args.checkpoint_every,
                 resume=not args.no_resume,
-                watchdog=Watchdog(curvature_every=args.curvature_every), logger=logger,
+                watchdog=Watchdog(curvature_every=args.curvature_every),
             )
         except MDWatchdogError as exc:  # a failed computation, not a user error: exit 3
             print(f"emlp md: watchdog: {exc}", file=sys.stderr)
@@ -98,17 +102,16 @@ def add_md(sub) -> None:
         except ValueError as exc:  # e.g. the output folder holds another run's checkpoint
             raise InputError(str(exc)) from exc
         finally:
-            for handler in list(logger.handlers):
-                logger.removeHandler(handler)
-                handler.close()
+            handlers()
         write_json(out / "settings.json", resolved)
-        warnings = []
-        if not s.pbc:
-            from emlpack.io import read_structures
+        from emlpack.io import read_structures
 
-            last = read_structures(out / "trajectory.xyz", "-1")[0]
-            warnings = [f"bonding changed: {c}" for c in
-                        bonding_changes(s.numbers, s.positions, last.positions)]
+        last = read_structures(out / "trajectory.xyz", "-1")[0]
+        warnings = [f"bonding changed: {c}" for c in
+                    bonding_changes(s.numbers, s.positions, last.positions)]
+        energies = _final_energies(member, s, last)
+        write_json(out / "summary.json", {**json.loads((out / "summary.json").read_text()),
+                                          **energies})
         if result.watchdog_events:
             warnings.append(f"{result.watchdog_events} watchdog events (see md.log)")
         for w in warnings:
@@ -118,11 +121,24 @@ def add_md(sub) -> None:
             _write_atoms_only(out / "trajectory.xyz", out / "trajectory_atoms.xyz")
             log(f"wrote {out / 'trajectory_atoms.xyz'} (atoms only)")
         log(f"{result.steps} steps, {result.watchdog_events} watchdog events,"
-            f" {result.evaluations_per_step:.2f} evaluations/step -> {result.output}")
+            f" {result.evaluations_per_step:.2f} evaluations/step, final potential energy"
+            f" {energies['energy_eV']:.6f} eV ({energies['energy_scale']} scale)"
+            f" -> {result.output}")
         log("done with warnings" if warnings else "done")
         return 0
 
     p.set_defaults(func=run, resumable=True)
+
+
+def _final_energies(member, structure, last) -> dict:
+    """The last frame's potential and conserved energies for summary.json, on the DFT scale
+    when the checkpoint holds hydride references (:func:`energy_record`; the shift is a
+    constant of the composition, so the conserved energy moves by the same amount). The
+    trajectory's per-frame energies stay the model's own."""
+    record = energy_record(member, structure, last.info["potential_energy"])
+    shift = record["energy_eV"] - record["model_energy_eV"]
+    return {**record,
+            "final_conserved_energy_eV": float(last.info["conserved_energy"] + shift)}
 
 
 def _write_atoms_only(trajectory, path) -> None:
@@ -151,25 +167,31 @@ def _add_settings(json_path, args) -> None:
         write_json(json_path, data)
 
 
-def _md_logger(folder, quiet: bool):
-    """The run's log: every line to ``md.log``; to stderr too, warnings only with --quiet."""
+def _md_log_handlers(folder, quiet: bool):
+    """Send the package's log (the MD driver's progress and watchdog events, the solvers'
+    warnings) to ``md.log`` and to stderr (warnings only with --quiet) for the run; returns the
+    function that removes the handlers again."""
     import logging
 
     from emlpack.md import LOG
 
-    path = (folder / LOG).resolve()
-    log = logging.getLogger(f"emlpack.cli.md.{path}")
+    log = logging.getLogger("emlpack")
+    level = log.level
     log.setLevel(logging.INFO)
-    log.propagate = False
-    for handler in list(log.handlers):
-        log.removeHandler(handler)
-        handler.close()
     fmt = logging.Formatter("%(asctime)s %(levelname)s %(message)s")
-    for handler in (logging.FileHandler(path), logging.StreamHandler()):
+    handlers = [logging.FileHandler((folder / LOG).resolve()), logging.StreamHandler()]
+    handlers[1].setLevel(logging.WARNING if quiet else logging.INFO)
+    for handler in handlers:
         handler.setFormatter(fmt)
         log.addHandler(handler)
-    log.handlers[1].setLevel(logging.WARNING if quiet else logging.INFO)
-    return log
+
+    def remove() -> None:
+        for handler in handlers:
+            log.removeHandler(handler)
+            handler.close()
+        log.setLevel(level)
+
+    return remove
 
 
 def add_md_analysis(sub) -> None:

@@ -34,7 +34,7 @@ from ase import Atoms
 from ase.stress import voigt_6_to_full_3x3_stress
 from ase.utils import string2index
 
-from emlpack._files import atomic_write  # noqa: F401  (re-exported: md.py, cli/ call it from here)
+from emlpack._files import atomic_write
 from emlpack.errors import InputError, MissingFileError
 from emlpack.io.cores import CORE_TOLERANCE, split_core_centres
 from emlpack.structure import (

@@ -41,7 +41,7 @@ image; non-positive curvature). :mod:`emlpack.pairs.solvers` wraps this function
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -552,9 +552,17 @@ def _lumped_short_range(prob, coulomb, x, grad, step=1e-4):
 _DAVIDSON_TRACE: list | None = None  # set to a list to record (products, residual, value)
 
 
-def _davidson_min_curvature(prob, x, mask, model_hessian, steps, tol=1e-3, block=4):
-    """Smallest eigenvalue of every structure's exact pair Hessian restricted to ``mask``
-    (B, m): Davidson iterations preconditioned by the quasi-Newton model ``model_hessian``
+def davidson_min_curvature(
+    product: Callable[[torch.Tensor], torch.Tensor],
+    mask: torch.Tensor,
+    model_hessian: torch.Tensor,
+    steps: int,
+    tol: float = 1e-3,
+    block: int = 4,
+) -> torch.Tensor:
+    """Smallest eigenvalue (B,) of every structure's exact pair Hessian restricted to ``mask``
+    (B, m), given its products ``product(q) -> H q`` ((B, m) -> (B, m), padded pair
+    coordinates): Davidson iterations preconditioned by the quasi-Newton model ``model_hessian``
     (B, m, m; Olsen's correction, so a model close to the Hessian does not stall), started from
     the model's ``block`` softest directions (one alone can miss a soft mode the model does not
     know: measured on the fixture weights' hexane); one exact Hessian-vector product for the
@@ -562,7 +570,7 @@ def _davidson_min_curvature(prob, x, mask, model_hessian, steps, tol=1e-3, block
     ``r <= tol sqrt(|theta| scale)`` (scale: the model's largest curvature; the eigenvalue
     error is ~ r^2 / gap: measured <= 5e-5 relative on hexane with both test models)."""
     b, m = mask.shape
-    dtype = x.dtype
+    dtype = model_hessian.dtype
     maskf = mask.to(dtype)
     both = mask[:, :, None] & mask[:, None, :]
     mod = torch.where(both, model_hessian, 0.0) + torch.diag_embed(torch.where(mask, 0.0, 1e30))
@@ -574,7 +582,7 @@ def _davidson_min_curvature(prob, x, mask, model_hessian, steps, tol=1e-3, block
         if it < block:  # start: the model's ``block`` softest directions
             q = vec[:, :, it] * maskf
             q = torch.where(mask.sum(1, keepdim=True) > it, q, 0.0)
-        hq = prob.pad(prob.hvp(x, prob.unpad(q))) * maskf
+        hq = product(q) * maskf
         basis.append(q)
         images.append(hq)
         if it + 1 < block:
@@ -628,7 +636,8 @@ def _min_curvature(prob, x, grad, lower, upper, projected, opts, n_hess,
         held = prob.pad(((x <= lower) | (x >= upper)) & (projected(grad, x) == 0)) > 0
         mask = (torch.arange(3 * prob.n_max)[None, :] < 3 * g.n_pairs[:, None]) & ~held
         steps = min(opts.curvature_steps, int(mask.sum(1).max()))
-        min_curv = _davidson_min_curvature(prob, x, mask, model_hessian, steps)
+        min_curv = davidson_min_curvature(lambda q: prob.pad(prob.hvp(x, prob.unpad(q))),
+                                          mask, model_hessian, steps)
         n_hess += 1
         return torch.where(mask.any(1), min_curv, torch.nan)
     if opts.check_curvature and prob.n_max:
