@@ -792,7 +792,7 @@ def stage_md(study: Study) -> None:
             try:
                 run_md(model, s, steps, run, dt_fs=dt_fs,
                        temperature_K=float(c.get("temperature_K", 300.0)), ensemble="nvt",
-                       seed=int(c.get("seed", 0)), relax=str(c.get("relax", "warm")),
+                       seed=int(c.get("seed", 0)), relax=str(c.get("relax", "corrected")),
                        checkpoint_every=int(c.get("checkpoint_every", 50)),
                        log_every=int(c.get("log_every", 100)))
             except (MDWatchdogError, CalculationFailed) as exc:
