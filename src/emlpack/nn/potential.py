@@ -194,7 +194,9 @@ class EMLP(nn.Module):
 
     def energy(self, g: Graph, positions=None, cell=None, field=None, held=None) -> torch.Tensor:
         """Total energy (eV) per structure (``held``: see :meth:`energy_parts`)."""
-        return self.energy_parts(g, positions, cell, field, held)["energy"]
+        if held is None:  # subclasses with their own energy_parts take no ``held``
+            return self.energy_parts(g, positions, cell, field)["energy"]
+        return self.energy_parts(g, positions, cell, field, held=held)["energy"]
 
     def forward(
         self,
