@@ -129,3 +129,35 @@ def test_overrides_do_not_change_the_callers_options():
         relax_pairs(model, methane, opts, no_such_option=1)
     relax_pairs(model, methane, opts, fmax=1e-5, max_iterations=3)
     assert opts.fmax == 1e-3 and opts.max_iterations == 100
+
+
+@pytest.mark.parametrize("which", ["small", "trained"])
+def test_held_core_core_filters_equal_plain_evaluation(which, small, trained):
+    """The relaxation's energy with the core-core SchNet filters computed once (cores fixed)
+    equals the plain model energy, gradient and Hessian-vector product to 1e-12 relative in
+    float64: molecules and a crystal (image shifts) in one batch."""
+    model = small if which == "small" else trained
+    mol = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), index="60:62")
+    crystal = read_structures(shared_path("data/beta_glycine_pbe_wannier.xyz"), index="0:1")
+    structures = mol + crystal if set(model.config.elements) >= {1, 6, 7, 8} else mol
+    flags = [p.requires_grad for p in model.parameters()]
+    for p in model.parameters():
+        p.requires_grad_(False)
+    try:
+        g = model.graph(structures, dtype=torch.float64)
+        plain = _PairProblem(model, g, hold_filters=False)
+        held = _PairProblem(model, g)
+        assert plain.held is None and held.held is not None
+        assert 0 < len(held.held.i) < len(g.edge_i)
+        x = g.positions[plain.pair_idx].clone()
+        x = x + 0.05 * torch.sin(torch.arange(x.numel(), dtype=x.dtype)).reshape(x.shape)
+        e0, g0 = plain.energy_gradient(x)
+        e1, g1 = held.energy_gradient(x)
+        assert torch.abs(e1 - e0).max() <= 1e-12 * torch.abs(e0).max()
+        assert torch.abs(g1 - g0).max() <= 1e-12 * torch.abs(g0).max()
+        v = torch.cos(torch.arange(x.numel(), dtype=x.dtype)).reshape(x.shape)
+        h0, h1 = plain.hvp(x, v), held.hvp(x, v)
+        assert torch.abs(h1 - h0).max() <= 1e-12 * torch.abs(h0).max()
+    finally:
+        for p, f in zip(model.parameters(), flags, strict=True):
+            p.requires_grad_(f)

@@ -25,7 +25,7 @@ from torch import nn
 from emlpack.nn.electrostatics import coulomb_molecular, ewald_reciprocal, field_energy
 from emlpack.nn.graph import Graph, collate
 from emlpack.nn.scatter import segment_sum
-from emlpack.nn.schnet import SchNet
+from emlpack.nn.schnet import HeldFilters, SchNet
 from emlpack.structure import PAIR_NUMBER, Structure
 from emlpack.units import ANGSTROM_IN_BOHR, REFERENCE_GAMMA, REFERENCE_GCUT_PER_BOHR
 
@@ -115,8 +115,11 @@ class EMLP(nn.Module):
         positions: torch.Tensor | None = None,
         cell: torch.Tensor | None = None,
         field: torch.Tensor | None = None,
+        held: HeldFilters | None = None,
     ) -> dict[str, torch.Tensor]:
         """Energy parts (eV) per structure; ``positions``/``cell``/``field`` override ``g``'s.
+        With ``held`` (:meth:`hold_filters`) the held edges' filters are not recomputed: their
+        lengths must be those of ``g`` (frozen parameters only).
 
         Returns ``energy``, ``energy_short_range``, ``energy_long_range``, ``energy_field``
         (each (B,)) and ``atomic_energies`` (N,).
@@ -124,8 +127,12 @@ class EMLP(nn.Module):
         pos = g.positions if positions is None else positions
         cell = g.cell if cell is None else cell
         field = g.field if field is None else field
-        i, j = g.edge_i, g.edge_j
-        atomic = self.schnet(g.numbers, self.edge_lengths(g, pos, cell), i, j)
+        if held is None:
+            atomic = self.schnet(g.numbers, self.edge_lengths(g, pos, cell), g.edge_i, g.edge_j)
+        else:
+            free = held.free
+            r = self.edge_lengths(g, pos, cell, free)
+            atomic = self.schnet(g.numbers, r, g.edge_i[free], g.edge_j[free], held)
         b = g.n_structures
         e_sr = segment_sum(atomic, g.batch, b)
         c = self.config
@@ -146,23 +153,50 @@ class EMLP(nn.Module):
         }
 
     @staticmethod
-    def edge_vectors(g: Graph, positions: torch.Tensor, cell: torch.Tensor) -> torch.Tensor:
-        """Vectors ``r_j - r_i`` (+ image shift) of the half-list SchNet edges (Å), (E, 3)."""
-        i, j = g.edge_i, g.edge_j
+    def edge_vectors(
+        g: Graph, positions: torch.Tensor, cell: torch.Tensor, edges: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Vectors ``r_j - r_i`` (+ image shift) of the half-list SchNet edges (Å), (E, 3);
+        with ``edges`` (indices) of those edges only."""
+        i, j, shift = g.edge_i, g.edge_j, g.edge_shift
+        if edges is not None:
+            i, j, shift = i[edges], j[edges], shift[edges]
         d = positions[j] - positions[i]
-        if g.edge_shift.numel():
-            d = d + torch.einsum("ea,eab->eb", g.edge_shift, cell[g.batch[i]])
+        if shift.numel():
+            d = d + torch.einsum("ea,eab->eb", shift, cell[g.batch[i]])
         return d
 
     @classmethod
-    def edge_lengths(cls, g: Graph, positions: torch.Tensor, cell: torch.Tensor) -> torch.Tensor:
-        """Lengths (Å) of the half-list SchNet edges, ``sqrt(|d|^2 + 1e-20)``, (E,)."""
-        d = cls.edge_vectors(g, positions, cell)
+    def edge_lengths(
+        cls,
+        g: Graph,
+        positions: torch.Tensor,
+        cell: torch.Tensor,
+        edges: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Lengths (Å) of the half-list SchNet edges, ``sqrt(|d|^2 + 1e-20)``, (E,) (with
+        ``edges``: of those only)."""
+        d = cls.edge_vectors(g, positions, cell, edges)
         return torch.sqrt((d * d).sum(-1) + 1e-20)
 
-    def energy(self, g: Graph, positions=None, cell=None, field=None) -> torch.Tensor:
-        """Total energy (eV) per structure."""
-        return self.energy_parts(g, positions, cell, field)["energy"]
+    def hold_filters(self, g: Graph, hold: torch.Tensor) -> HeldFilters:
+        """Filters of the edges ``hold`` (E,) bool of ``g`` at ``g``'s geometry, computed once
+        for :meth:`energy_parts` (e.g. the core-core edges while only the pairs move; frozen
+        parameters)."""
+        idx = torch.nonzero(hold).squeeze(1)
+        with torch.no_grad():
+            r = self.edge_lengths(g, g.positions.detach(), g.cell.detach(), idx)
+            filters = self.schnet.frozen_filters(r)
+        return HeldFilters(
+            i=g.edge_i[idx], j=g.edge_j[idx], filters=filters,
+            free=torch.nonzero(~hold).squeeze(1),
+        )
+
+    def energy(self, g: Graph, positions=None, cell=None, field=None, held=None) -> torch.Tensor:
+        """Total energy (eV) per structure (``held``: see :meth:`energy_parts`)."""
+        if held is None:  # subclasses with their own energy_parts take no ``held``
+            return self.energy_parts(g, positions, cell, field)["energy"]
+        return self.energy_parts(g, positions, cell, field, held=held)["energy"]
 
     def forward(
         self,

@@ -20,6 +20,7 @@ The filter of an unordered pair is computed once and the message is scattered bo
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 from torch import nn
@@ -47,8 +48,15 @@ def cosine_cutoff(r: torch.Tensor, cutoff: float, transition: float) -> torch.Te
     return geometry.cosine_cutoff(r, cutoff, transition, xp=torch)
 
 
-def convolve(a: torch.Tensor, w: torch.Tensor, i: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
-    """``conv_i = sum_j a_j * w_ij`` over the half list, each pair scattered both ways.
+def convolve(
+    a: torch.Tensor,
+    w: torch.Tensor,
+    i: torch.Tensor,
+    j: torch.Tensor,
+    out: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """``conv_i = sum_j a_j * w_ij`` over the half list, each pair scattered both ways (added
+    to ``out`` when given, without changing it).
 
     ``index_select`` + ``scatter_add`` rather than ``a[j]``, ``torch.cat`` and ``index_add_``:
     the backward of advanced indexing is an accumulating ``index_put_`` (it sorts), the cat
@@ -56,8 +64,26 @@ def convolve(a: torch.Tensor, w: torch.Tensor, i: torch.Tensor, j: torch.Tensor)
     busy (see :mod:`emlpack.nn.scatter`).
     """
     k = a.shape[1]
-    out = torch.zeros_like(a).scatter_add(0, i[:, None].expand(-1, k), a.index_select(0, j) * w)
+    out = torch.zeros_like(a) if out is None else out
+    out = out.scatter_add(0, i[:, None].expand(-1, k), a.index_select(0, j) * w)
     return out.scatter_add(0, j[:, None].expand(-1, k), a.index_select(0, i) * w)
+
+
+@dataclass
+class HeldFilters:
+    """Filters held fixed on part of the half-list edges, whose lengths do not change between
+    calls (the core-core edges while only electron pairs move at fixed cores and cell).
+
+    ``i``, ``j`` (H,) are the held edges and ``filters`` their filters ``W_ij`` (H, K), one per
+    interaction, computed once (:meth:`SchNet.frozen_filters`); ``free`` (E - H,) indexes the
+    graph's edges whose filters are evaluated at every call. The energy equals the plain
+    evaluation up to rounding (only the order of the message sums changes).
+    """
+
+    i: torch.Tensor
+    j: torch.Tensor
+    filters: list[torch.Tensor]
+    free: torch.Tensor
 
 
 class GaussianBasis(nn.Module):
@@ -141,13 +167,23 @@ class SchNet(nn.Module):
         )
 
     def forward(
-        self, numbers: torch.Tensor, r: torch.Tensor, i: torch.Tensor, j: torch.Tensor
+        self,
+        numbers: torch.Tensor,
+        r: torch.Tensor,
+        i: torch.Tensor,
+        j: torch.Tensor,
+        held: HeldFilters | None = None,
     ) -> torch.Tensor:
-        """Atomic energies (N,) from particle numbers and the half-list edge lengths ``r`` (Å)."""
+        """Atomic energies (N,) from particle numbers and the half-list edge lengths ``r`` (Å)
+        of the edges ``(i, j)``; with ``held`` (frozen weights only) the edges ``held.i``,
+        ``held.j`` contribute with their held filters in addition."""
         rbf = self.rbf(r)
         fcut = cosine_cutoff(r, self.cutoff, self.cutoff_transition)
-        if not any(p.requires_grad for p in self.parameters()):
-            return self._forward_folded(numbers, rbf, fcut, i, j)
+        frozen = not any(p.requires_grad for p in self.parameters())
+        if held is not None and not frozen:
+            raise ValueError("held filters need frozen parameters (requires_grad=False)")
+        if frozen:
+            return self._forward_folded(numbers, rbf, fcut, i, j, held)
         h = self.embedding(numbers).to(r.dtype)
         for block in self.interactions:
             h = block(h, rbf, fcut, i, j, self.message_norm)
@@ -270,21 +306,39 @@ class SchNet(nn.Module):
             out.append((y2 * fc, y2d * fc + y2 * fc1, y2dd * fc + 2.0 * y2d * fc1 + y2 * fc2))
         return out
 
-    def _forward_folded(self, numbers, rbf, fcut, i, j) -> torch.Tensor:
+    def frozen_filters(self, r: torch.Tensor) -> list[torch.Tensor]:
+        """Filters ``W_ij`` (E, K) of every interaction at the edge lengths ``r`` (Å), from
+        the frozen-weight tables (:meth:`folded_weights`), as the folded evaluation forms them
+        (for :class:`HeldFilters`)."""
+        fw = self.folded_weights(r.dtype, r.device)
+        rbf = self.rbf(r)
+        fc = cosine_cutoff(r, self.cutoff, self.cutoff_transition)[:, None]
+        return [self._filter(f, rbf, fc) for f in fw["filters"]]
+
+    @staticmethod
+    def _filter(f, rbf: torch.Tensor, fc: torch.Tensor) -> torch.Tensor:
+        # W_ij = (softplus(z) - ln 2) f_c in one pass
+        w1, b1, w2, b2, _, _ = f
+        softplus = nn.functional.softplus
+        return torch.addcmul(
+            fc * -LN2, softplus(torch.addmm(b2, softplus(torch.addmm(b1, rbf, w1)), w2)), fc
+        )
+
+    def _forward_folded(self, numbers, rbf, fcut, i, j, held=None) -> torch.Tensor:
         fw = self.folded_weights(rbf.dtype, rbf.device)
         softplus = nn.functional.softplus
         fc = fcut[:, None]
-        shift = fc * -LN2
         vs = []
-        for t, (w1, b1, w2, b2, wc, bc) in enumerate(fw["filters"]):
+        for t, f in enumerate(fw["filters"]):
+            wc, bc = f[4], f[5]
             a = fw["tables"][t].index_select(0, numbers)
             for s, m in enumerate(fw["cross"][t]):
                 a = torch.addmm(a, vs[s], m)
-            # W_ij = (softplus(z) - ln 2) f_c in one pass
-            w = torch.addcmul(
-                shift, softplus(torch.addmm(b2, softplus(torch.addmm(b1, rbf, w1)), w2)), fc
-            )
-            conv = convolve(a, w, i, j)
+            w = self._filter(f, rbf, fc)
+            conv = None
+            if held is not None:
+                conv = convolve(a, held.filters[t].to(a.dtype), held.i, held.j)
+            conv = convolve(a, w, i, j, conv)
             vs.append(softplus(torch.addmm(bc, conv, wc)))
         h = softplus(
             torch.addmm(fw["table_out"].index_select(0, numbers), torch.cat(vs, 1), fw["w_out"])
