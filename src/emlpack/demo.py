@@ -201,6 +201,14 @@ def ir_step(out: Path, model: Path, command: Command | None, smiles: str = "O") 
     return step
 
 
+def _formula(numbers) -> str:
+    """Hill formula of the cores (e.g. ``H2O``)."""
+    from ase.formula import Formula
+    from ase.symbols import Symbols
+
+    return Formula(str(Symbols(numbers))).format("hill")
+
+
 def _pretrained_lines(step: dict) -> list[str]:
     lines = ["## 0. A pretrained model first", ""]
     if step["status"] == "not installed":
@@ -230,7 +238,9 @@ def _pretrained_lines(step: dict) -> list[str]:
 
 def write_report(out: Path, times: dict, table: str, dipoles: list[dict],
                  calc_rows: list[dict], cfg: dict, n_data: int,
-                 pretrained: dict | None = None, ir: dict | None = None) -> Path:
+                 pretrained: dict | None = None, ir: dict | None = None,
+                 names: dict[str, tuple[str, str]] | None = None) -> Path:
+    """``report.md``; ``names`` maps a structure's source to ``(key, formula)``."""
     lines = [
         "# emlpack demo report", "",
         *_pretrained_lines(pretrained or {"status": "not installed", "name": PRETRAINED,
@@ -260,17 +270,18 @@ def write_report(out: Path, times: dict, table: str, dipoles: list[dict],
         "| configuration | formula | DFT [D] | eMLP [D] | max pair shift [Å] | relaxation |",
         "|---|---|---|---|---|---|",
     ]
-    formulas = {r["structure"]: r["formula"] for r in calc_rows}
+    names = names or {}
     for r in dipoles:
-        formula = formulas.get(r["structure"]) or r["structure"].split("/")[0]
-        lines.append(f"| {r['structure']} | {formula} | {r['dft_dipole_D']:.3f} |"
+        key, formula = names.get(r["structure"], (r["structure"], ""))
+        lines.append(f"| {key} | {formula} | {r['dft_dipole_D']:.3f} |"
                      f" {r['emlp_dipole_D']:.3f} | {r['max_pair_shift']:.3f} |"
                      f" {r['failure'] or 'ok'} |")
     lines += ["", "## The same through the ASE calculator (one configuration per molecule)", "",
               "| configuration | formula | DFT [D] | eMLP [D] | max pair shift [Å] | relaxation |",
               "|---|---|---|---|---|---|"]
     for r in calc_rows:
-        lines.append(f"| {r['structure']} | {r['formula']} | {r['dft_dipole_D']:.3f} |"
+        key = names.get(r["structure"], (r["structure"], ""))[0]
+        lines.append(f"| {key} | {r['formula']} | {r['dft_dipole_D']:.3f} |"
                      f" {r['emlp_dipole_D']:.3f} | {r['max_pair_shift_A']:.3f} |"
                      f" {r['relaxation']} |")
     if ir:
@@ -349,7 +360,8 @@ def run_demo(output: str | Path = "demo_output", minutes: float = TRAIN_MINUTES,
     print(f"  IR spectrum of water with the demo model: {ir['status']}")
     times["calculator and IR"] = time.monotonic() - t0
     dipoles = results["models"][0]["dynamic"]["structures"]
+    names = {s.source: (s.info.get("key", s.source), _formula(s.numbers)) for s in test}
     report = write_report(out, times, table, dipoles, calc_rows, cfg, len(structures),
-                          pretrained, ir)
+                          pretrained, ir, names)
     print(f"wrote {report} (total {sum(times.values()) / 60:.1f} min)")
     return 0

@@ -64,3 +64,20 @@ def test_demo_starts_with_an_installed_pretrained_model(tmp_path, monkeypatch):
     assert (out / step["ir_plot"]).exists()
     text = "\n".join(_pretrained_lines(step))
     assert "Isotropic polarizability" in text and "emlp ir mini-eqm7 --smiles C" in text
+
+
+def test_report_names_configurations_by_key_and_formula(tmp_path):
+    from emlpack.demo import _formula, write_report
+
+    dipoles = [{"structure": "data.h5, record 3", "dft_dipole_D": 2.2, "emlp_dipole_D": 2.1,
+                "max_pair_shift": 0.02, "failure": ""}]
+    calc = [{"structure": "data.h5, record 3", "formula": "H2O", "dft_dipole_D": 2.2,
+             "emlp_dipole_D": 2.1, "max_pair_shift_A": 0.02, "relaxation": "converged"}]
+    cfg = {"model": {"n_features": 8, "n_filters": 8, "n_rbf": 8, "n_interactions": 1},
+           "training": {"max_time_minutes": 1}, "data": {"fractions": [0.6, 0.2, 0.2]}}
+    names = {"data.h5, record 3": ("H2O/0003", _formula([8, 1, 1]))}
+    text = write_report(tmp_path, {"labeling": 1.0}, "## table\n", dipoles, calc, cfg, 10,
+                        names=names).read_text()
+    assert "| H2O/0003 | H2O | 2.200 |" in text
+    assert "record 3" not in text
+    assert "is not installed" in text            # no pretrained model: said, not hidden
