@@ -15,7 +15,7 @@ $(VENV)/.installed: pyproject.toml Makefile
 
 install: $(VENV)/.installed
 
-# CP2K (periodic labeler, emlpack.qm.cp2k_labeler): Debian/Ubuntu packages, only when missing.
+# CP2K (periodic labeler, emlpack.qm.cp2k): Debian/Ubuntu packages, only when missing.
 install-cp2k:
 	@command -v cp2k.psmp >/dev/null && command -v mpirun >/dev/null \
 		&& test -f /usr/share/cp2k/BASIS_MOLOPT || { \

@@ -20,7 +20,7 @@ FIXTURES = SHARED / "fixtures" / "reference_tf"
 
 def paper_model(dtype: torch.dtype):
     """The paper-size model with the fixture weights (random, seeded by the fixture author)."""
-    from emlpack.nn.reference import model_from_reference
+    from emlpack.legacy.reference_weights import model_from_reference
 
     weights = dict(np.load(FIXTURES / "weights_paper.npz"))
     hparams = json.loads((FIXTURES / "hparams_paper.json").read_text())["constructor_kwargs"]

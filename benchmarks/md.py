@@ -47,8 +47,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import ROOT, machine_info, write_json  # noqa: E402
 from ase import Atoms  # noqa: E402
 
+from emlpack.dynamics.md import TRAJECTORY, Watchdog, run_md  # noqa: E402
 from emlpack.io import read_structures  # noqa: E402
-from emlpack.md import TRAJECTORY, Watchdog, run_md  # noqa: E402
 from emlpack.structure import Structure  # noqa: E402
 
 
@@ -58,8 +58,8 @@ def hexane(model=None) -> Structure:
     heating up from the force-field geometry."""
     from ase import Atoms
 
-    from emlpack.optimize import optimize
     from emlpack.pairs.guess import guess_pairs
+    from emlpack.properties.optimize import optimize
     from emlpack.qm.sampling import molecule_from_smiles
 
     mol = molecule_from_smiles("CCCCCC", name="hexane", seed=0)
@@ -74,7 +74,7 @@ def hexane(model=None) -> Structure:
 def force_errors(start: Structure, frames, model) -> dict:
     """Largest error of the recorded core forces (eV/Å) and energies (eV) against the pairs
     relaxed to 1e-10 eV/Å at the same cores (from the recorded pairs): the per-step BO error."""
-    from emlpack.calculator import EMLPCalculator
+    from emlpack.calculators.ase import EMLPCalculator
     from emlpack.nn.checkpoint import load_model
     from emlpack.pairs.solvers import WarmStartSolver
 

@@ -76,7 +76,7 @@ def hexane():
 
 def hessians(model, structure, repeat: int) -> tuple[dict, dict]:
     """Timings and Hessians (numpy) of every method; the reference is run once."""
-    from emlpack.response import extended_hessian
+    from emlpack.properties.hessian import extended_hessian
 
     extended_hessian(model, structure)  # warm-up: folded weights, first-call costs
     times, out = {}, {}
@@ -91,7 +91,7 @@ def hessians(model, structure, repeat: int) -> tuple[dict, dict]:
 
 
 def crystal_tensors(h: np.ndarray, s) -> dict:
-    from emlpack.response import crystal_response_from_hessian
+    from emlpack.properties.response import crystal_response_from_hessian
 
     d = crystal_response_from_hessian(h, s).as_dict()
     keys = ("dielectric_ion_clamped", "dielectric_relaxed", "stiffness_voigt_GPa",
@@ -101,8 +101,8 @@ def crystal_tensors(h: np.ndarray, s) -> dict:
 
 
 def molecule_tensors(h: np.ndarray, s) -> dict:
-    from emlpack.response import born_oppenheimer_blocks, polarizability_from_hessian
-    from emlpack.spectra import ir_from_hessian
+    from emlpack.properties.ir import ir_from_hessian
+    from emlpack.properties.response import born_oppenheimer_blocks, polarizability_from_hessian
 
     bo, dmu, _ = born_oppenheimer_blocks(h, s)
     ir = ir_from_hessian(h, s)
@@ -134,8 +134,8 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     from emlpack.io import read_structures
-    from emlpack.optimize import optimize
     from emlpack.pairs.relax import relax_pairs
+    from emlpack.properties.optimize import optimize
 
     model = benchmark_model(args.model, torch.float64)
     results: dict = {"machine": machine_info(), "model": args.model, "dtype": "float64",

@@ -116,7 +116,7 @@ def test_minimum_image_distances_of_the_skewed_cell():
 def test_cp2k_centres_map_to_the_core_nearest_by_minimum_image():
     """qm/cp2k_labeler.py: the centre is 1.24 Å from core 0 (through a far image) and 1.40 Å
     from core 1; the 27-image search saw 2.27 Å to core 0 and picked core 1."""
-    from emlpack.qm.cp2k_labeler import map_centres_to_cores
+    from emlpack.qm.cp2k import map_centres_to_cores
 
     cores = np.array([[0.0, 0.0, 0.0], [3.5, 0.8, 0.3]])
     mapped, core = map_centres_to_cores(SHORT[None], cores, VERY_SKEWED)

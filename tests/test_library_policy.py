@@ -1,6 +1,7 @@
 """Rules of the library code (DESIGN.md, STYLE.md), checked on the source: one error base, one
 logging style (the library logs through ``logging.getLogger(__name__)`` and installs no handler;
-only the CLI and the demo print)."""
+only the CLI and the demo print), imports without cycles and without other modules' private
+names (function-local imports included)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "emlpack"
 #: modules that talk to the user directly: the command line and the demo's progress report
-PRINTING = ("cli/", "demo.py")
+PRINTING = ("cli/",)
 
 
 def _modules():
@@ -53,3 +54,59 @@ def test_the_library_logs_and_only_the_cli_prints():
                 handlers.append(f"{rel}:{node.lineno}")
     assert not prints, prints
     assert not handlers, handlers
+
+
+def _module_name(rel: str) -> str:
+    parts = ["emlpack", *rel[:-3].split("/")]
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports():
+    """(importer, imported module, names, line) for every import of emlpack, at any depth."""
+    modules = {_module_name(rel) for rel, _ in _modules()}
+    for rel, tree in _modules():
+        me = _module_name(rel)
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                for alias in node.names:
+                    if alias.name.startswith("emlpack."):
+                        yield me, alias.name, [], f"{rel}:{node.lineno}"
+            elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("emlpack"):
+                names = [a.name for a in node.names]
+                yield me, node.module, names, f"{rel}:{node.lineno}"
+                for name in names:  # `from emlpack.pairs import relax`: the submodule
+                    if f"{node.module}.{name}" in modules:
+                        yield me, f"{node.module}.{name}", [], f"{rel}:{node.lineno}"
+
+
+def test_no_module_imports_another_modules_private_names():
+    bad = [f"{where}: {name} from {module}" for me, module, names, where in _imports()
+           for name in names if name.startswith("_") and not name.startswith("__")
+           and module != me]
+    assert not bad, bad
+
+
+def test_no_import_cycles():
+    """No module imports one that imports it back (directly or through others), counting
+    function-local imports; a package's ``__init__`` re-exporting its own submodules is the
+    one allowed direction."""
+    graph: dict[str, set[str]] = {}
+    for me, module, _, _ in _imports():
+        if module != me and not (me.startswith(module + ".")):  # a submodule and its package
+            graph.setdefault(me, set()).add(module)
+    cycles, state = [], {}
+
+    def visit(node, path):
+        state[node] = "open"
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == "open":
+                cycles.append(" -> ".join(path[path.index(nxt):] + [nxt]))
+            elif nxt not in state:
+                visit(nxt, [*path, nxt])
+        state[node] = "done"
+
+    for node in sorted(graph):
+        if node not in state:
+            visit(node, [node])
+    assert len(graph) > 50
+    assert not cycles, cycles

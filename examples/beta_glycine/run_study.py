@@ -24,7 +24,7 @@ Usage (from the project root)::
     python examples/beta_glycine/run_study.py all --config my.yaml workdir=/tmp/x
 
 ``key=value`` arguments override the YAML config (dots for nesting, values parsed as YAML).
-The labeler is CP2K (:class:`emlpack.qm.cp2k_labeler.CP2KLabeler`, settings under ``cp2k:``);
+The labeler is CP2K (:class:`emlpack.qm.cp2k.CP2KLabeler`, settings under ``cp2k:``);
 :func:`run` accepts any labeler obeying the protocol (tests use an eMLP).
 """
 
@@ -43,15 +43,15 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from emlpack.crystal_reference import (
+from emlpack.data.store import DatasetStore
+from emlpack.io.extxyz import read_structures
+from emlpack.properties.fd_reference import (
     CrystalReferenceError,
     FDSettings,
     ReferenceTensors,
     reference_tasks,
     reference_tensors,
 )
-from emlpack.data.store import DatasetStore
-from emlpack.io.extxyz import read_structures
 from emlpack.qm.crystal_sampling import LabelTask, crystal_tasks
 from emlpack.structure import Structure
 from emlpack.units import (
@@ -183,7 +183,7 @@ class Study:
 
     def labeler(self) -> Callable:
         if self._labeler is None:
-            from emlpack.qm.cp2k_labeler import CP2KLabeler, CP2KSettings
+            from emlpack.qm.cp2k import CP2KLabeler, CP2KSettings
 
             self._labeler = CP2KLabeler(CP2KSettings(**self.cfg.get("cp2k", {})),
                                         workdir=self.workdir / "scratch")
@@ -239,7 +239,7 @@ def stage_optimize(study: Study) -> dict | None:
     settings = dict(study.cfg.get("cp2k", {}), **o.get("cp2k", {}))
     labeler = study._labeler
     if labeler is None:
-        from emlpack.qm.cp2k_labeler import CP2KLabeler, CP2KSettings
+        from emlpack.qm.cp2k import CP2KLabeler, CP2KSettings
 
         labeler = CP2KLabeler(CP2KSettings(**settings), workdir=study.workdir / "scratch_opt")
     start = study.input.copy(info={"molecule_id": study.cfg["molecule_id"]})
@@ -384,7 +384,7 @@ def _model_path(study: Study) -> Path:
 def stage_sample(study: Study) -> None:
     """Save the BO cell Hessian of the latest model at the input structure for the next
     model-Hessian round (whose samples `label` then generates)."""
-    from emlpack.model_labeler import bo_cell_hessian
+    from emlpack.calculators.labeler import bo_cell_hessian
     from emlpack.nn.checkpoint import load_model
 
     pending = [int(r["round"]) for r in study.cfg.get("rounds", [])
@@ -413,9 +413,9 @@ def lattice(cell: np.ndarray) -> dict:
 def stage_emlp(study: Study) -> dict:
     """BO cell optimisation with the model; tensors at the optimum and at the input geometry."""
     from emlpack.nn.checkpoint import load_model
-    from emlpack.optimize import optimize
     from emlpack.pairs.relax import relax_pairs
-    from emlpack.response import crystal_response
+    from emlpack.properties.optimize import optimize
+    from emlpack.properties.response import crystal_response
 
     e = study.cfg.get("emlp", {})
     model = load_model(_model_path(study))

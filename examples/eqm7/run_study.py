@@ -381,7 +381,8 @@ def _start_geometry(study: Study, row: dict) -> tuple[np.ndarray, np.ndarray, st
 
 def harmonic_ir(hessian: np.ndarray, born: np.ndarray, numbers, positions) -> dict:
     """Frequencies (cm^-1, imaginary negative) and IR intensities (km/mol) from a Cartesian
-    Hessian (eV/Å²) and dipole derivatives dmu_a/dR_ib (3, 3N; e), as :mod:`emlpack.spectra`."""
+    Hessian (eV/Å²) and dipole derivatives dmu_a/dR_ib (3, 3N; e), as
+    :mod:`emlpack.properties.ir`."""
     from ase.data import atomic_masses
 
     from emlpack.geometry import normal_modes
@@ -540,7 +541,7 @@ def _dft_structure(r: dict):
 # ---------------------------------------------------------------------- polarizability
 def stage_polarizability(study: Study) -> None:
     from emlpack.pairs.relax import relax_pairs
-    from emlpack.response import molecule_response
+    from emlpack.properties.response import molecule_response
 
     refs = dft_results(study)
     if not refs:
@@ -624,9 +625,9 @@ def polarizability_summary(study: Study) -> dict | None:
 # ---------------------------------------------------------------------- ir
 def stage_ir(study: Study) -> None:
     from emlpack.bonding import bonding_changes
-    from emlpack.optimize import optimize
     from emlpack.pairs.relax import relax_pairs
-    from emlpack.spectra import ir_spectrum
+    from emlpack.properties.ir import ir_spectrum
+    from emlpack.properties.optimize import optimize
 
     c = study.cfg.get("ir", {})
     refs = dft_results(study)
@@ -711,7 +712,7 @@ def figure4(study: Study, summary: dict) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from emlpack.spectra import lorentzian
+    from emlpack.properties.ir import lorentzian
 
     c = study.cfg.get("ir", {})
     fwhm = float(c.get("fwhm", 10.0))
@@ -769,9 +770,9 @@ def stage_md(study: Study) -> None:
     from ase.calculators.calculator import CalculationFailed
 
     from emlpack.bonding import bonding_changes
+    from emlpack.dynamics.analysis import TrajectoryAnalysisError, analyze_trajectory
+    from emlpack.dynamics.md import MDWatchdogError, run_md
     from emlpack.io.extxyz import read_structures
-    from emlpack.md import MDWatchdogError, run_md
-    from emlpack.md_analysis import TrajectoryAnalysisError, analyze_trajectory
 
     c = study.cfg.get("md", {})
     dt_fs = float(c.get("dt_fs", 0.5))
@@ -827,7 +828,7 @@ def stage_md(study: Study) -> None:
     summary = md_summary(study)
     figure = study.workdir / "figure3_md.png"
     if summary and summary["analyses"] and (study.work["md"] or not figure.exists()):
-        from emlpack.md_analysis import ConservedAnalysis, plot_conserved
+        from emlpack.dynamics.analysis import ConservedAnalysis, plot_conserved
 
         runs, labels, groups = [], [], []
         for r in summary["analyses"]:
@@ -849,7 +850,7 @@ def stage_md(study: Study) -> None:
         plot_conserved(runs, figure, labels=labels, groups=groups,
                        title=title)
         # panels (b) and (c): one run of each class present (stable, transition, unstable)
-        from emlpack.md_analysis import plot_conserved_series
+        from emlpack.dynamics.analysis import plot_conserved_series
 
         examples = {}
         for r in summary["analyses"]:

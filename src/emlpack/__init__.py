@@ -6,7 +6,7 @@ __version__ = "0.1.0"
 def __getattr__(name: str):
     # lazy, so that `import emlpack` (and `emlp --help`) does not import torch
     if name == "load_pretrained":
-        from emlpack.ensemble import load_pretrained
+        from emlpack.calculators.ensemble import load_pretrained
 
         return load_pretrained
     raise AttributeError(f"module 'emlpack' has no attribute {name!r}")

@@ -52,7 +52,7 @@ def zero_short_range(model: EMLP) -> EMLP:
 
 def reference_model() -> EMLP:
     """The fixture's small reference model (32 features, 2 layers), float64."""
-    from emlpack.nn.reference import model_from_reference
+    from emlpack.legacy.reference_weights import model_from_reference
 
     weights = dict(np.load(shared_path(f"{FIXTURES}/weights_small.npz")))
     hparams = json.loads(shared_path(f"{FIXTURES}/hparams_small.json").read_text())

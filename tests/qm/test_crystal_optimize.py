@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from ase.geometry import cell_to_cellpar
 
+from emlpack.calculators.labeler import ModelLabeler
 from emlpack.data.store import DatasetStore
-from emlpack.model_labeler import ModelLabeler
-from emlpack.optimize import optimize
+from emlpack.properties.optimize import optimize
 from emlpack.qm.crystal_optimize import (
     CrystalOptimizationError,
     optimize_crystal,
@@ -18,7 +18,7 @@ from emlpack.qm.crystal_optimize import (
 )
 from emlpack.units import EV_PER_A3_IN_GPA
 from tests.nn.helpers import water_crystal
-from tests.response.toy import spring_model
+from tests.properties.toy import spring_model
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +38,8 @@ class Counting:
 
 def test_minimum_agrees_with_model_cell_optimisation(setup, tmp_path):
     """From a strained, displaced start next to the model's BO cell minimum (Newton with exact
-    Hessians, emlpack.optimize), BFGS on the labeler's energy/forces/stress returns to it."""
+    Hessians, emlpack.properties.optimize), BFGS on the labeler's energy/forces/stress returns to
+    it."""
     model, s = setup
     ref = optimize(model, s, cell=True, fmax=1e-6, smax=1e-8, max_iterations=100)
     assert ref.converged

@@ -22,7 +22,7 @@ from emlpack.data.references import ConstantReference
 from emlpack.pairs.relax import relax_pairs
 from emlpack.structure import Structure
 from tests.nn.helpers import water_molecule
-from tests.response.toy import spring_model
+from tests.properties.toy import spring_model
 
 #: hand-coded charges (e) of O, H, H and the four pairs; Debye per e·Å (1 D = 0.20819434 e·Å)
 CHARGES = np.array([6.0, 1.0, 1.0, -2.0, -2.0, -2.0, -2.0])

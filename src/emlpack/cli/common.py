@@ -204,9 +204,9 @@ def model_files(name_or_path: str) -> tuple[list[Path], str]:
 
 
 def load_members(name_or_path: str) -> list:
-    """Every :class:`emlpack.ensemble.ModelMember` (float64) of a MODEL argument: one for a
-    checkpoint, all of them for an ensemble folder or a pretrained name."""
-    from emlpack.ensemble import load_member as _load
+    """Every :class:`emlpack.calculators.ensemble.ModelMember` (float64) of a MODEL argument: one
+    for a checkpoint, all of them for an ensemble folder or a pretrained name."""
+    from emlpack.calculators.ensemble import load_member as _load
     from emlpack.nn.checkpoint import CheckpointError
 
     files, _ = model_files(name_or_path)
@@ -223,8 +223,8 @@ def load_members(name_or_path: str) -> list:
 
 
 def load_member(name_or_path: str, command: str = "this command"):
-    """The one :class:`emlpack.ensemble.ModelMember` of a MODEL argument, for the commands
-    that evaluate a single model (an ensemble is refused with one line)."""
+    """The one :class:`emlpack.calculators.ensemble.ModelMember` of a MODEL argument, for the
+    commands that evaluate a single model (an ensemble is refused with one line)."""
     files, label = model_files(name_or_path)
     if len(files) > 1:
         raise InputError(

@@ -94,9 +94,9 @@ def add_convert_reference(sub) -> None:
     p.add_argument("-o", "--output", required=True, help="emlpack model file to write (.pt)")
 
     def run(args):
-        from emlpack.io.tf_checkpoint import read_reference_hparams, read_tf_checkpoint
+        from emlpack.legacy.reference_weights import model_from_reference
+        from emlpack.legacy.tf_checkpoint import read_reference_hparams, read_tf_checkpoint
         from emlpack.nn.checkpoint import save_model
-        from emlpack.nn.reference import model_from_reference
 
         hparams = read_reference_hparams(args.prefix)
         model = model_from_reference(read_tf_checkpoint(args.prefix), hparams, dtype=None)

@@ -62,7 +62,7 @@ def add_md(sub) -> None:
         from pathlib import Path
 
         from emlpack.bonding import bonding_changes
-        from emlpack.md import MDWatchdogError, Watchdog, run_md
+        from emlpack.dynamics.md import MDWatchdogError, Watchdog, run_md
 
         positive(args.steps, "--steps")
         positive(args.dt, "--dt")
@@ -173,7 +173,7 @@ def _md_log_handlers(folder, quiet: bool):
     function that removes the handlers again."""
     import logging
 
-    from emlpack.md import LOG
+    from emlpack.dynamics.md import LOG
 
     log = logging.getLogger("emlpack")
     level = log.level
@@ -207,7 +207,7 @@ def add_md_analysis(sub) -> None:
     p.add_argument("--groups", nargs="+", help="one group name per trajectory (plot colours)")
 
     def run(args):
-        from emlpack.md_analysis import run_analysis
+        from emlpack.dynamics.analysis import run_analysis
 
         positive(args.discard, "--discard", allow_zero=True)
         try:
@@ -239,7 +239,7 @@ def add_md_ir(sub) -> None:
     p.add_argument("--padding", type=int, default=8, help="zero-padding factor")
 
     def run(args):
-        from emlpack.md_analysis import run_md_ir
+        from emlpack.dynamics.analysis import run_md_ir
 
         positive(args.temperature, "--temperature")
         positive(args.discard, "--discard", allow_zero=True)

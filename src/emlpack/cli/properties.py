@@ -99,8 +99,8 @@ class Prepared:
     def energies(self) -> dict:
         """Energy record (DFT scale when known) of the members at their structures, with the
         ensemble's mean, ``energy_eV_std`` and a warning when the spread is large."""
-        from emlpack.calculator import ENERGY_SPREAD_WARNING
-        from emlpack.ensemble import member_spread
+        from emlpack.calculators.ase import ENERGY_SPREAD_WARNING
+        from emlpack.calculators.ensemble import member_spread
 
         records = [energy_record(m, s, m.model.evaluate(s)["energy"])
                    for _, m, s in self.each()]
@@ -161,8 +161,8 @@ def prepare(args, periodic: bool | None, command: str) -> Prepared:
 def relax(model, s, level: str, args, log: Log, warnings: list[str]):
     """Relax ``s`` to ``level``; problems are appended to ``warnings``, never hidden."""
     from emlpack.bonding import bonding_changes
-    from emlpack.optimize import optimize
     from emlpack.pairs.relax import relax_pairs
+    from emlpack.properties.optimize import optimize
     from emlpack.units import EV_PER_A3_IN_GPA
 
     info: dict = {"level": level}
@@ -281,8 +281,8 @@ def add_ir(sub) -> None:
     def run(args):
         import json
 
-        from emlpack.ensemble import member_spread
-        from emlpack.spectra import ir_spectrum, write_ir
+        from emlpack.calculators.ensemble import member_spread
+        from emlpack.properties.ir import ir_spectrum, write_ir
 
         positive(args.fwhm, "--fwhm")
         ref = None
@@ -357,8 +357,8 @@ def add_polarizability(sub) -> None:
     _common(p, "pairs", "polarizability.json", "JSON file of the dipole and polarizabilities")
 
     def run(args):
-        from emlpack.ensemble import member_mean, member_spread
-        from emlpack.response import molecule_response
+        from emlpack.calculators.ensemble import member_mean, member_spread
+        from emlpack.properties.response import molecule_response
         from emlpack.units import COULOMB_EV_A, POLARIZABILITY_A3_IN_BOHR3
 
         prep = prepare(args, False, "emlp polarizability")
@@ -403,8 +403,8 @@ def add_response(sub) -> None:
     _common(p, "positions", "response.json", "JSON file of the tensors")
 
     def run(args):
-        from emlpack.ensemble import member_mean, member_spread
-        from emlpack.response import crystal_response
+        from emlpack.calculators.ensemble import member_mean, member_spread
+        from emlpack.properties.response import crystal_response
 
         prep = prepare(args, True, "emlp response")
         t0 = time.perf_counter()

@@ -105,7 +105,7 @@ def add_demo(sub) -> None:
     p.add_argument("-o", "--output", default="demo_output", help="output folder")
 
     def run(args):
-        from emlpack.demo import run_demo
+        from emlpack.cli.demo import run_demo
 
         log_to_stdout()
         return run_demo(args.output)

@@ -3,7 +3,7 @@
 * :mod:`emlpack.io.extxyz`: extxyz files (reference ``Es``/``efield`` and native conventions);
 * :mod:`emlpack.io.cores`: removal of inner-shell centres (minimum image under PBC);
 * :mod:`emlpack.io.ase_convert`: :class:`~emlpack.structure.Structure` <-> :class:`ase.Atoms`;
-* :mod:`emlpack.io.tf_checkpoint`: TensorFlow checkpoints of the reference (import it directly).
+* :mod:`emlpack.legacy.tf_checkpoint`: TensorFlow checkpoints of the reference (import it directly).
 """
 
 from emlpack.io.ase_convert import atoms_to_structure, split_pairs, structure_to_atoms

@@ -7,7 +7,7 @@
   (:class:`~emlpack.pairs.solvers.PairSolver`): :class:`~emlpack.pairs.solvers.BatchedSolver`
   (``relax_pairs``), MD's :class:`~emlpack.pairs.solvers.WarmStartSolver` (extrapolation +
   carried-Hessian quasi-Newton) and the paper's :class:`~emlpack.pairs.solvers.BoxedLBFGSB`;
-  :class:`emlpack.calculator.EMLPCalculator` takes any of them.
+  :class:`emlpack.calculators.ase.EMLPCalculator` takes any of them.
 * :mod:`emlpack.pairs.checks`: :func:`~emlpack.pairs.checks.check_pairs` (merged or stray
   pairs, convergence, curvature; minimum image).
 

@@ -1,8 +1,8 @@
 """The one check of relaxed electron pairs: merged pairs, stray pairs, convergence, curvature.
 
 :func:`check_pairs` is used by the batched relaxation (:func:`emlpack.pairs.relax.relax_pairs`,
-so by :class:`emlpack.calculator.EMLPCalculator` through its solvers) and by MD's watchdog
-(:class:`emlpack.md.Watchdog`). Distances use the minimum image
+so by :class:`emlpack.calculators.ase.EMLPCalculator` through its solvers) and by MD's watchdog
+(:class:`emlpack.dynamics.md.Watchdog`). Distances use the minimum image
 (:func:`emlpack.geometry.minimum_image`). The thresholds are named parameters; the callers use
 
 =====================================  ======================  ======================

@@ -4,7 +4,7 @@ A solver relaxes the electron pairs of one structure at fixed cores, starting fr
 structure's pairs (and, for the warm-start solvers, from what it kept of earlier calls), and
 returns a :class:`~emlpack.pairs.relax.RelaxResult` (pairs, energy, pair forces, diagnostics,
 ``reason`` from :func:`emlpack.pairs.checks.check_pairs`; the warm-start solvers also give the
-core forces). :class:`emlpack.calculator.EMLPCalculator` takes any of them (``pair_solver=``).
+core forces). :class:`emlpack.calculators.ase.EMLPCalculator` takes any of them (``pair_solver=``).
 
 * :class:`BatchedSolver`: :func:`~emlpack.pairs.relax.relax_pairs` (default quasi-Newton with
   the analytic electrostatic pair Hessian, or exact Newton: ``RelaxOptions.initial_hessian``);

@@ -9,8 +9,8 @@ theory, data, measured errors on unseen molecules, domain, citation)::
     atoms.calc = EMLPCalculator(model="mini-eqm7")   # the same, with uncertainty
 
 Energies of these models are on the DFT scale (the DFT hydride energies added back, see
-:mod:`emlpack.ensemble`), so they compare directly with a PySCF total energy at the training
-level. Nothing here downloads anything: the files are part of the installed package.
+:mod:`emlpack.calculators.ensemble`), so they compare directly with a PySCF total energy at the
+training level. Nothing here downloads anything: the files are part of the installed package.
 """
 
 from __future__ import annotations

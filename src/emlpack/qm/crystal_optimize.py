@@ -1,6 +1,6 @@
 """Optimisation of a crystal's core positions and cell with a labeler (DFT or model), by ASE.
 
-The labeler (:class:`emlpack.qm.cp2k_labeler.CP2KLabeler`, :class:`emlpack.model_labeler.
+The labeler (:class:`emlpack.qm.cp2k.CP2KLabeler`, :class:`emlpack.calculators.labeler.
 ModelLabeler`, anything with ``labeler(structure, *, stress=...) -> Structure``) is wrapped as
 an ASE calculator (:class:`LabelerCalculator`); ASE's BFGS moves the cores and, through
 :class:`ase.filters.FrechetCellFilter`, the cell (zero external pressure, zero field). With

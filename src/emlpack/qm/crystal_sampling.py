@@ -13,7 +13,7 @@ Two generators of geometries around a reference crystal:
 * :func:`hessian_sample`: the cell-extended normal-mode sample at ``T`` (600 K in the paper) of
   :func:`emlpack.qm.sampling.cell_normal_mode_sample`, from an extended Hessian in (Cartesian
   core positions, 9 cell elements) or a callable returning it: finite differences of DFT, or the
-  Born-Oppenheimer Hessian of a trained eMLP (:func:`emlpack.model_labeler.bo_cell_hessian`).
+  Born-Oppenheimer Hessian of a trained eMLP (:func:`emlpack.calculators.labeler.bo_cell_hessian`).
 
 Every sample is reproducible from ``(seed, round, set, index)`` alone, so a resumed run
 regenerates exactly the configurations whose keys are not yet in the store. The electron pairs

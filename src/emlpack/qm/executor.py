@@ -4,8 +4,8 @@
 priority first, then in submission order); ``Executor(workers=N)`` starts a Dask
 ``LocalCluster`` of N single-threaded worker processes; ``Executor(scheduler=ADDRESS)`` uses an
 existing Dask cluster. The drivers (:func:`emlpack.qm.labeling.run_labeling`,
-:func:`emlpack.qm.cp2k_labeler.label_into_store`, :func:`emlpack.qm.relabel.relabel`,
-:func:`emlpack.demo.generate_labels`) submit tagged tasks and consume them as they complete,
+:func:`emlpack.qm.cp2k.label_into_store`, :func:`emlpack.qm.relabel.relabel`,
+:func:`emlpack.cli.demo.generate_labels`) submit tagged tasks and consume them as they complete,
 writing results from the calling process only.
 """
 

@@ -1,0 +1,151 @@
+"""Harmonic IR spectra of molecules from the Born-Oppenheimer Hessian of the eMLP.
+
+1. the extended Hessian (positions of cores and pairs, field) gives, with the pairs eliminated
+   (Schur complement, :func:`emlpack.properties.response.born_oppenheimer_blocks`), the BO core
+   Hessian ``K`` (eV/Å²) and the dipole derivatives ``Z_a,ib = dmu_a/dR_ib`` (e);
+2. mass weighting ``K_mw = M^-1/2 K M^-1/2`` (masses: ``ase.data.atomic_masses``, amu) and
+   projection on the complement of the rigid translations/rotations (``3N - 6`` modes, ``3N - 5``
+   for linear molecules);
+3. wavenumbers ``nu = sqrt(lambda) / (2 pi c)`` in cm^-1 (negative for imaginary modes);
+4. intensities ``I_k = N_A/(12 eps0 c^2) |dmu/dQ_k|^2`` (km/mol) with
+   ``dmu/dQ_k = sum_i Z_i L_ik / sqrt(m_i)``;
+5. Lorentzian lines ``I_k (1/pi) (w/2) / ((nu - nu_k)^2 + (w/2)^2)`` of FWHM ``w`` (default
+   10 cm^-1, the paper's), in km/mol per cm^-1.
+
+IR spectra from MD (the dipole autocorrelation) are in :mod:`emlpack.dynamics.ir_acf`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from ase.data import atomic_masses
+
+from emlpack._files import write_figure_atomic, write_json_atomic
+from emlpack.geometry import normal_modes
+from emlpack.nn.potential import EMLP
+from emlpack.properties.hessian import extended_hessian
+from emlpack.properties.response import born_oppenheimer_blocks
+from emlpack.structure import Structure
+from emlpack.units import (
+    IR_KM_PER_MOL_PER_E2_AMU,
+    WAVENUMBER_CM1_PER_SQRT_EV_A2_AMU,
+)
+
+
+@dataclass
+class IRSpectrum:
+    """Harmonic normal modes and IR intensities of a molecule.
+
+    Attributes:
+        frequencies: wavenumbers (cm^-1), ascending; imaginary modes negative.
+        intensities: IR intensities (km/mol).
+        modes: Cartesian displacement of each mode (n_modes, n_cores, 3), mass-weighted
+            eigenvectors divided by sqrt(mass) and normalised.
+        hessian: BO core Hessian (3Nc, 3Nc), eV/Å².
+        dipole_derivatives: dmu_a/dR_ib (3, 3Nc), e.
+        masses: amu.
+    """
+
+    frequencies: np.ndarray
+    intensities: np.ndarray
+    modes: np.ndarray
+    hessian: np.ndarray
+    dipole_derivatives: np.ndarray
+    masses: np.ndarray
+
+    def broadened(
+        self, grid: np.ndarray | None = None, fwhm: float = 10.0
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(wavenumbers cm^-1, absorbance km/mol/cm^-1) with Lorentzian lines of ``fwhm``."""
+        if grid is None:
+            top = min(max(4000.0, float(self.frequencies.max(initial=0.0)) + 200.0), 10000.0)
+            grid = np.arange(0.0, top, 1.0)
+        return grid, lorentzian(grid, self.frequencies, self.intensities, fwhm)
+
+    def as_dict(self, fwhm: float = 10.0) -> dict:
+        grid, curve = self.broadened(fwhm=fwhm)
+        return {
+            "frequencies_cm-1": self.frequencies.tolist(),
+            "intensities_km_per_mol": self.intensities.tolist(),
+            "fwhm_cm-1": fwhm,
+            "spectrum_grid_cm-1": grid.tolist(),
+            "spectrum_km_per_mol_per_cm-1": curve.tolist(),
+            "masses_amu": self.masses.tolist(),
+        }
+
+    def text(self) -> str:
+        lines = ["mode  wavenumber (cm^-1)  intensity (km/mol)"]
+        lines += [f"{k:4d}  {f:18.2f}  {i:18.3f}"
+                  for k, (f, i) in enumerate(zip(self.frequencies, self.intensities, strict=True))]
+        return "\n".join(lines)
+
+
+def lorentzian(grid: np.ndarray, centres: np.ndarray, heights: np.ndarray, fwhm: float):
+    """sum_k heights_k (1/pi) (fwhm/2) / ((grid - centres_k)^2 + (fwhm/2)^2)."""
+    g = 0.5 * fwhm
+    d = np.asarray(grid)[:, None] - np.asarray(centres)[None, :]
+    return (np.asarray(heights)[None, :] * (g / np.pi) / (d * d + g * g)).sum(axis=1)
+
+
+def ir_from_hessian(hessian: np.ndarray, structure: Structure) -> IRSpectrum:
+    """:class:`IRSpectrum` from the molecular extended Hessian of ``structure``."""
+    if structure.pbc:
+        raise ValueError(f"{structure.source}: IR spectra are for molecules")
+    k_bo, dmu_dr, _ = born_oppenheimer_blocks(hessian, structure)
+    masses = atomic_masses[structure.numbers]
+    evals, vecs = normal_modes(k_bo, structure.positions, masses)
+    freqs = np.sign(evals) * np.sqrt(np.abs(evals)) * WAVENUMBER_CM1_PER_SQRT_EV_A2_AMU
+    inv_sqrt_m = 1.0 / np.sqrt(np.repeat(masses, 3))
+    dmu_dq = dmu_dr @ (vecs * inv_sqrt_m[:, None])  # (3, n_modes), e/sqrt(amu)
+    intensities = IR_KM_PER_MOL_PER_E2_AMU * np.sum(dmu_dq**2, axis=0)
+    cart = (vecs * inv_sqrt_m[:, None]).T.reshape(len(evals), -1, 3)
+    cart /= np.linalg.norm(cart.reshape(len(evals), -1), axis=1)[:, None, None]
+    return IRSpectrum(freqs, intensities, cart, k_bo, dmu_dr, masses)
+
+
+def ir_spectrum(model: EMLP, structure: Structure) -> IRSpectrum:
+    """Harmonic IR spectrum of ``structure`` (pairs relaxed, cores at a minimum: see
+    :func:`emlpack.properties.optimize.optimize`)."""
+    _, h = extended_hessian(model, structure)
+    return ir_from_hessian(h.numpy(), structure)
+
+
+def write_ir(
+    spectrum: IRSpectrum,
+    json_path: str | Path,
+    png_path: str | Path | None = None,
+    fwhm: float = 10.0,
+    reference: tuple[np.ndarray, np.ndarray] | None = None,
+    title: str = "",
+) -> None:
+    """Write the spectrum as JSON and, optionally, a PNG plot; ``reference`` = (wavenumbers
+    cm^-1, intensities km/mol) of a reference line spectrum, broadened the same way."""
+    data = spectrum.as_dict(fwhm)
+    if reference is not None:
+        data["reference_frequencies_cm-1"] = np.asarray(reference[0]).tolist()
+        data["reference_intensities_km_per_mol"] = np.asarray(reference[1]).tolist()
+    write_json_atomic(json_path, data)
+    if png_path is None:
+        return
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    grid, curve = spectrum.broadened(fwhm=fwhm)
+    fig, ax = plt.subplots(figsize=(8, 4))
+    ax.plot(grid, curve, color="C0", label="eMLP")
+    if reference is not None:
+        ref = lorentzian(grid, np.asarray(reference[0]), np.asarray(reference[1]), fwhm)
+        ax.plot(grid, ref, color="C1", ls="--", label="reference")
+        ax.legend()
+    ax.set_xlabel("wavenumber (cm$^{-1}$)")
+    ax.set_ylabel("absorbance (km/mol per cm$^{-1}$)")
+    ax.set_title(title or f"IR spectrum, Lorentzian FWHM {fwhm:g} cm$^{{-1}}$")
+    fig.tight_layout()
+    write_figure_atomic(png_path, fig, dpi=120)
+    plt.close(fig)
+

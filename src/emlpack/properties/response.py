@@ -1,0 +1,290 @@
+"""Response properties of the eMLP from its extended Hessian (paper, appendix A).
+
+The extended Hessian (:func:`emlpack.properties.hessian.extended_hessian`) differentiates the
+total energy twice with respect to particle positions (fractional coordinates and the cell for
+crystals) and the field (V/Å).
+
+Every response property is a Schur complement of this matrix: eliminating a block ``x``
+(relaxing those coordinates at zero gradient) leaves ``S = H_yy - H_yx H_xx^-1 H_xy`` for the
+remaining variables ``y``. With the sign of the field term (``E_field = -mu . F``):
+
+* polarizability ``alpha = -d2E/dF2 = H_Fx H_xx^-1 H_xF`` (``H_FF = 0``), e·Å²/V; ``x`` = pairs
+  (clamped cores, the paper's main text) or pairs + cores (rigid-body motions projected out);
+* Born-Oppenheimer core Hessian ``S_cc`` and dipole derivatives ``dmu/dR = -S_Fc`` (pairs
+  eliminated), for IR spectra (:mod:`emlpack.properties.ir`);
+* crystals (``A`` = cell, rows = lattice vectors; ``V`` = volume; ``x`` = fractional
+  coordinates, with uniform translations projected out):
+
+  - stiffness ``C_ijkl = (1/V) sum_mn A_mi A_nk S_aa[(m,j),(n,l)]``
+    = ``(1/V) d2E/(d eps_ij d eps_kl)`` for ``A -> A (I + eps)``, internal coordinates relaxed;
+  - dielectric ``eps_ij = delta_ij + alpha_ij / (V eps0)``;
+  - proper piezoelectric tensor ``e~_ijk = (1/V) sum_m A_mj (H_Fx H_xx^-1 H_xa)_{i,(m,k)}``
+    = ``(1/V) sum_m A_mj (H_Fa - S_Fa)_{i,(m,k)}``, and the improper one
+    ``e_ijk = dP_i/d eps_jk`` (``P = mu/V`` from unwrapped positions), related by
+    ``e~_ijk = e_ijk + delta_jk P_i - delta_ik P_j`` (Vanderbilt 2000);
+  - strain constants ``d = e : C^-1``; Voigt order xx yy zz yz xz xy, engineering shear strain
+    (``S_4 = 2 eps_yz``), so ``d_iJ = sum_K e_iK (C^-1)_KJ`` carries the factor 2 on shears.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from emlpack.geometry import (
+    VoigtViews,
+    internal_basis,
+    rigid_body_modes,
+    schur_complement,
+    voigt_piezo,
+    voigt_stiffness,
+)
+from emlpack.nn.potential import EMLP
+from emlpack.properties.hessian import extended_hessian
+from emlpack.structure import Structure
+from emlpack.units import (
+    A_PER_V_IN_PM_PER_V,
+    COULOMB_EV_A,
+    E_A_IN_DEBYE,
+    E_PER_A2_IN_C_PER_M2,
+    EPSILON0_E_PER_V_A,
+    EV_PER_A3_IN_GPA,
+    POLARIZABILITY_A3_IN_BOHR3,
+)
+
+
+# ---------------------------------------------------------------------- molecules
+def _molecule_layout(structure: Structure) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Indices of core, pair and field variables of the molecular extended Hessian."""
+    nc, n = structure.n_cores, structure.n_cores + structure.n_pairs
+    return np.arange(3 * nc), np.arange(3 * nc, 3 * n), np.arange(3 * n, 3 * n + 3)
+
+
+def polarizability_from_hessian(
+    hessian: np.ndarray, structure: Structure, relax_cores: bool = False
+) -> np.ndarray:
+    """Static polarizability alpha_ij = -d2E/dF_i dF_j (e·Å²/V) of a molecule.
+
+    ``relax_cores=False``: pairs relaxed at clamped cores (electronic, the paper's main text);
+    ``True``: cores relaxed as well, rigid-body motions of the whole molecule projected out
+    (electronic + vibrational); the geometry should then be a minimum.
+    """
+    if structure.pbc:
+        raise ValueError(f"{structure.source}: polarizability is for molecules; use"
+                         " crystal_response for crystals")
+    cores, pairs, field = _molecule_layout(structure)
+    if relax_cores:
+        coords = np.concatenate([cores, pairs])
+        basis = internal_basis(rigid_body_modes(structure.all_positions))
+        return -schur_complement(hessian, field, coords, basis)
+    return -schur_complement(hessian, field, pairs)
+
+
+def born_oppenheimer_blocks(
+    hessian: np.ndarray, structure: Structure
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pairs eliminated: core Hessian (3Nc, 3Nc) eV/Å², dipole derivatives dmu_a/dR_ib
+    (3, 3Nc) e, and clamped-core polarizability (3, 3) e·Å²/V, of a molecule."""
+    cores, pairs, field = _molecule_layout(structure)
+    keep = np.concatenate([cores, field])
+    s = schur_complement(hessian, keep, pairs)
+    nc = len(cores)
+    return s[:nc, :nc], -s[nc:, :nc], -s[nc:, nc:]
+
+
+@dataclass
+class MoleculeResponse:
+    """Dipole and polarizabilities of a molecule (e·Å, e·Å²/V)."""
+
+    dipole: np.ndarray
+    polarizability: np.ndarray
+    polarizability_relaxed: np.ndarray | None = None
+
+    def as_dict(self) -> dict:
+        out = {
+            "dipole_e_A": self.dipole.tolist(),
+            "dipole_debye": (self.dipole * E_A_IN_DEBYE).tolist(),
+            "dipole_norm_debye": float(np.linalg.norm(self.dipole) * E_A_IN_DEBYE),
+        }
+        for key, value in (("polarizability", self.polarizability),
+                           ("polarizability_relaxed_cores", self.polarizability_relaxed)):
+            if value is None:
+                continue
+            out[f"{key}_e_A2_per_V"] = value.tolist()
+            out[f"{key}_A3"] = (value * COULOMB_EV_A).tolist()
+            out[f"{key}_bohr3"] = (value * COULOMB_EV_A * POLARIZABILITY_A3_IN_BOHR3).tolist()
+            out[f"{key}_isotropic_bohr3"] = float(
+                np.trace(value) / 3 * COULOMB_EV_A * POLARIZABILITY_A3_IN_BOHR3
+            )
+        return out
+
+    def text(self) -> str:
+        d = self.as_dict()
+        lines = [
+            "dipole (e·Å):   " + _vec(self.dipole),
+            "dipole (Debye): " + _vec(self.dipole * E_A_IN_DEBYE)
+            + f"   |mu| = {d['dipole_norm_debye']:.4f} D",
+        ]
+        for key, label in (("polarizability", "pairs relaxed, cores clamped"),
+                           ("polarizability_relaxed_cores", "pairs and cores relaxed")):
+            if f"{key}_bohr3" not in d:
+                continue
+            lines.append(f"polarizability ({label}), bohr^3:"
+                         f"  isotropic {d[f'{key}_isotropic_bohr3']:.4f}")
+            lines += ["  " + _vec(row, "{:12.4f}") for row in np.array(d[f"{key}_bohr3"])]
+        return "\n".join(lines)
+
+
+def molecule_response(
+    model: EMLP, structure: Structure, relax_cores: bool = True
+) -> MoleculeResponse:
+    """Dipole (sum q r, e·Å) and polarizabilities of ``structure`` at its given geometry
+    (relax the pairs first; relax the cores too for ``relax_cores``)."""
+    _, h = extended_hessian(model, structure)
+    h = h.numpy()
+    return MoleculeResponse(
+        dipole=structure.dipole(),
+        polarizability=polarizability_from_hessian(h, structure),
+        polarizability_relaxed=(
+            polarizability_from_hessian(h, structure, relax_cores=True) if relax_cores else None
+        ),
+    )
+
+
+# ---------------------------------------------------------------------- crystals
+def improper_piezo(proper: np.ndarray, polarization: np.ndarray) -> np.ndarray:
+    """Improper ``e_ijk = e~_ijk - delta_jk P_i + delta_ik P_j`` (e/Å², P in e/Å²)."""
+    eye = np.eye(3)
+    return (proper - np.einsum("jk,i->ijk", eye, polarization)
+            + np.einsum("ik,j->ijk", eye, polarization))
+
+
+@dataclass
+class CrystalResponse(VoigtViews):
+    """Response tensors of a crystal in internal units (eV/Å³, e/Å², Å/V; dimensionless).
+
+    Attributes:
+        volume: cell volume (Å³).
+        polarization: dipole density ``sum q r / V`` (e/Å², unwrapped positions: not a
+            material property).
+        stiffness: relaxed-ion C_ijkl (eV/Å³), 3x3x3x3.
+        stiffness_clamped: C_ijkl with only the pairs relaxed (cores at fixed fractional
+            coordinates).
+        dielectric_clamped: ion-clamped eps_ij (pairs relaxed).
+        dielectric_relaxed: eps_ij with cores and pairs relaxed.
+        piezo: proper e~_ijk (e/Å²), relaxed ions.
+        piezo_clamped: proper e~_ijk with only the pairs relaxed.
+
+    Voigt views (:class:`emlpack.geometry.VoigtViews`): ``stiffness_voigt`` C_IJ (eV/Å³),
+    ``piezo_voigt`` e_iJ (e/Å²), ``strain_constants_voigt`` d_iJ (Å/V) and the tensor
+    ``strain_constants``.
+    """
+
+    volume: float
+    polarization: np.ndarray
+    stiffness: np.ndarray
+    stiffness_clamped: np.ndarray
+    dielectric_clamped: np.ndarray
+    dielectric_relaxed: np.ndarray
+    piezo: np.ndarray
+    piezo_clamped: np.ndarray
+
+    @property
+    def piezo_improper(self) -> np.ndarray:
+        return improper_piezo(self.piezo, self.polarization)
+
+    def as_dict(self) -> dict:
+        """All tensors in report units: GPa, C/m², pm/V (and dimensionless dielectric)."""
+        return {
+            "volume_A3": self.volume,
+            "polarization_C_per_m2": (self.polarization * E_PER_A2_IN_C_PER_M2).tolist(),
+            "stiffness_voigt_GPa": (self.stiffness_voigt * EV_PER_A3_IN_GPA).tolist(),
+            "stiffness_clamped_ion_voigt_GPa": (
+                voigt_stiffness(self.stiffness_clamped) * EV_PER_A3_IN_GPA).tolist(),
+            "dielectric_ion_clamped": self.dielectric_clamped.tolist(),
+            "dielectric_relaxed": self.dielectric_relaxed.tolist(),
+            "piezo_e_voigt_C_per_m2": (self.piezo_voigt * E_PER_A2_IN_C_PER_M2).tolist(),
+            "piezo_e_clamped_ion_voigt_C_per_m2": (
+                voigt_piezo(self.piezo_clamped) * E_PER_A2_IN_C_PER_M2).tolist(),
+            "piezo_e_proper_C_per_m2": (self.piezo * E_PER_A2_IN_C_PER_M2).tolist(),
+            "piezo_e_improper_C_per_m2": (
+                self.piezo_improper * E_PER_A2_IN_C_PER_M2).tolist(),
+            "piezo_d_voigt_pm_per_V": (
+                self.strain_constants_voigt * A_PER_V_IN_PM_PER_V).tolist(),
+            "conventions": (
+                "Voigt 1..6 = xx yy zz yz xz xy; strain S4 = 2 eps_yz (engineering); "
+                "e proper (Vanderbilt): e~_ijk = e_ijk + delta_jk P_i - delta_ik P_j; "
+                "d = e : C^-1 (relaxed-ion C at zero field)"
+            ),
+        }
+
+    def text(self) -> str:
+        """The tables of the paper's beta-glycine section (and the full tensors)."""
+        d = self.as_dict()
+        eps, c = np.array(d["dielectric_ion_clamped"]), np.array(d["stiffness_voigt_GPa"])
+        e, dd = np.array(d["piezo_e_voigt_C_per_m2"]), np.array(d["piezo_d_voigt_pm_per_V"])
+        lines = [f"volume {self.volume:.3f} Å^3", "Dielectric constants (ion-clamped)"]
+        lines += [f"  eps_{i + 1}{i + 1} {eps[i, i]:10.4f}" for i in range(3)]
+        lines.append("Stiffness constants [GPa] (relaxed ions)")
+        lines += [f"  C_{i + 1}{i + 1} {c[i, i]:10.3f}" for i in range(6)]
+        lines.append("Piezoelectric charge constants [C/m^2] (proper, relaxed ions)")
+        lines += [f"  e_{i + 1}{j + 1} {e[i, j]:10.4f}" for i in range(3) for j in range(6)]
+        lines.append("Piezoelectric strain constants [pm/V] (d = e : C^-1)")
+        lines += [f"  d_{i + 1}{j + 1} {dd[i, j]:10.3f}" for i in range(3) for j in range(6)]
+        for key, unit in (("dielectric_ion_clamped", ""), ("dielectric_relaxed", ""),
+                          ("stiffness_voigt_GPa", ""), ("stiffness_clamped_ion_voigt_GPa", ""),
+                          ("piezo_e_voigt_C_per_m2", ""), ("piezo_d_voigt_pm_per_V", "")):
+            lines.append(f"{key}{unit}:")
+            lines += ["  " + _vec(row, "{:11.4f}") for row in np.array(d[key])]
+        return "\n".join(lines)
+
+
+def crystal_response_from_hessian(hessian: np.ndarray, structure: Structure) -> CrystalResponse:
+    """All crystal tensors from the extended Hessian (fractional coords, cell, field) of
+    ``structure`` (whose internal coordinates should be relaxed: zero fractional gradient)."""
+    if not structure.pbc:
+        raise ValueError(f"{structure.source}: crystal_response needs a periodic structure")
+    nc, n = structure.n_cores, structure.n_cores + structure.n_pairs
+    frac = np.arange(3 * n)
+    pairs = np.arange(3 * nc, 3 * n)
+    cell_idx = np.arange(3 * n, 3 * n + 9)
+    field_idx = np.arange(3 * n + 9, 3 * n + 12)
+    keep = np.concatenate([cell_idx, field_idx])
+    a = structure.cell
+    volume = structure.volume
+    basis = internal_basis(rigid_body_modes(np.zeros((n, 3)), rotations=False))
+    h_fa = 0.5 * (hessian[np.ix_(field_idx, cell_idx)] + hessian[np.ix_(cell_idx, field_idx)].T)
+
+    def tensors(s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        s_aa = s[:9, :9].reshape(3, 3, 3, 3)  # [m, j, n, l]
+        stiffness = np.einsum("mi,nk,mjnl->ijkl", a, a, s_aa) / volume
+        alpha = -s[9:, 9:]
+        coupling = (h_fa - s[9:, :9]).reshape(3, 3, 3)  # [i, m, k]
+        piezo = np.einsum("mj,imk->ijk", a, coupling) / volume
+        return stiffness, alpha, piezo
+
+    relaxed = tensors(schur_complement(hessian, keep, frac, basis))
+    clamped = tensors(schur_complement(hessian, keep, pairs))
+    chi = 1.0 / (volume * EPSILON0_E_PER_V_A)
+    return CrystalResponse(
+        volume=volume,
+        polarization=structure.dipole() / volume,
+        stiffness=relaxed[0],
+        stiffness_clamped=clamped[0],
+        dielectric_clamped=np.eye(3) + chi * clamped[1],
+        dielectric_relaxed=np.eye(3) + chi * relaxed[1],
+        piezo=relaxed[2],
+        piezo_clamped=clamped[2],
+    )
+
+
+def crystal_response(model: EMLP, structure: Structure) -> CrystalResponse:
+    """Stiffness, dielectric and piezoelectric tensors of a crystal at its given geometry
+    (relax pairs and positions first, see :func:`emlpack.properties.optimize.optimize`)."""
+    _, h = extended_hessian(model, structure)
+    return crystal_response_from_hessian(h.numpy(), structure)
+
+
+def _vec(v, fmt: str = "{:10.5f}") -> str:
+    return " ".join(fmt.format(x) for x in np.asarray(v))

@@ -1,0 +1,122 @@
+"""The MODEL argument of the commands: checkpoints with their DFT hydride references report
+energies on the DFT scale; ensembles and pretrained names give one clear line."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from emlpack.calculators.ase import EMLPCalculator
+from emlpack.data.references import HydrideReference, load_hydrides
+from emlpack.io import read_structures, structure_to_atoms
+from emlpack.nn.checkpoint import load_model, save_model
+from tests.cli.helpers import run, save_test_model, water_rows, write_xyz
+from tests.conftest import shared_path
+
+
+@pytest.fixture(scope="module")
+def referenced_model(tmp_path_factory):
+    """A small random model saved with the shared DFT hydride references, as `emlp train`."""
+    folder = tmp_path_factory.mktemp("ref")
+    plain = save_test_model(folder)
+    ref = HydrideReference(*load_hydrides(shared_path("data/hydrides"))).to_metadata()
+    return save_model(load_model(plain), folder / "referenced.pt",
+                      {"reference": ref, "elements": [1, 6, 7, 8]})
+
+
+def test_optimize_reports_the_dft_scale(referenced_model, tmp_path):
+    water = write_xyz(tmp_path / "w.xyz", water_rows(4))
+    out = tmp_path / "opt.xyz"
+    rc, _, _ = run(["optimize", str(referenced_model), str(water), "-o", str(out),
+                    "--relax", "pairs", "--quiet"])
+    assert rc == 0
+    data = json.loads(out.with_suffix(".json").read_text())
+    s = read_structures(out)[0]
+    atoms = structure_to_atoms(s)
+    atoms.calc = EMLPCalculator(referenced_model, relax_pairs=False)
+    assert data["energy_scale"] == "dft"
+    assert data["energy_eV"] == pytest.approx(atoms.get_potential_energy(), abs=1e-6)
+    assert data["energy_relative_eV"] == pytest.approx(
+        atoms.calc.results["energy_relative"], abs=1e-6)
+    assert data["model_energy_eV"] == pytest.approx(atoms.calc.results["model_energy"],
+                                                    abs=1e-6)
+    # a water molecule on the DFT scale is near the PBE0 total energy (~ -2078 eV), far from
+    # the model's own scale
+    assert abs(data["energy_eV"] - data["model_energy_eV"]) > 100
+
+
+def test_pretrained_names_and_single_model_commands_give_one_line(referenced_model, tmp_path,
+                                                                   capsys):
+    from emlpack.cli import main
+
+    water = write_xyz(tmp_path / "w.xyz", water_rows(4))
+    folder = tmp_path / "ensemble"
+    folder.mkdir()
+    for k in range(2):
+        (folder / f"model-{k}.pt").write_bytes(referenced_model.read_bytes())
+    for command, model, expected in (
+            ("polarizability", "mini-eqm7", "is not installed"),
+            ("polarizability", "no-such-name", "no such model file, folder or pretrained name"),
+            ("md", str(folder), "an ensemble of 2 models")):  # MD runs one model
+        rc = main([command, model, str(water)])
+        err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+        assert rc == 2 and len(err) == 1 and expected in err[0], err
+    # a folder holding one checkpoint is that model
+    single = tmp_path / "single"
+    single.mkdir()
+    (single / "model.pt").write_bytes(referenced_model.read_bytes())
+    out = tmp_path / "pol.json"
+    assert main(["polarizability", str(single), str(water), "-o", str(out), "--quiet"]) == 0
+    data = json.loads(out.read_text())
+    assert np.isfinite(data["polarizability_isotropic_bohr3"]) and "ensemble" not in data
+
+
+@pytest.fixture(scope="module")
+def ensemble_folder(referenced_model, tmp_path_factory):
+    """Two different random members with the DFT hydride references."""
+    from tests.nn.helpers import random_model
+
+    folder = tmp_path_factory.mktemp("ens")
+    meta = {"reference": HydrideReference(*load_hydrides(shared_path("data/hydrides")))
+            .to_metadata(), "elements": [1, 6, 7, 8]}
+    save_model(load_model(referenced_model), folder / "member-0.pt", meta)
+    save_model(random_model(1), folder / "member-1.pt", meta)
+    return folder
+
+
+@pytest.mark.parametrize("command", ["polarizability", "ir"])
+def test_property_commands_report_the_ensemble_mean_and_spread(ensemble_folder, tmp_path,
+                                                               command):
+    """An ensemble folder: every member relaxes and computes on its own; the JSON holds the
+    members' mean with ``KEY_std`` beside it, equal to the single-model runs' statistics."""
+    from emlpack.cli import main
+
+    water = write_xyz(tmp_path / "w.xyz", water_rows(4))
+    extra = ["--relax", "pairs"] if command == "ir" else []
+    singles = []
+    for member in sorted(ensemble_folder.glob("*.pt")):
+        out = tmp_path / f"{member.stem}.json"
+        assert main([command, str(member), str(water), "-o", str(out), "--quiet", *extra]) == 0
+        singles.append(json.loads(out.read_text()))
+    out = tmp_path / "ensemble.json"
+    assert main([command, str(ensemble_folder), str(water), "-o", str(out), "--quiet",
+                 *extra]) == 0
+    data = json.loads(out.read_text())
+    assert data["ensemble"]["size"] == 2 and len(data["relaxation"]) == 2
+    keys = (["polarizability_isotropic_bohr3", "dipole_norm_debye", "energy_eV"]
+            if command == "polarizability" else ["frequencies_cm-1", "energy_eV"])
+    for key in keys:
+        values = np.array([s[key] for s in singles])
+        np.testing.assert_allclose(data[f"{key}_std"], values.std(axis=0), rtol=1e-6,
+                                   atol=1e-8)
+        if key != "dipole_norm_debye":  # the mean vector's norm is not the mean norm
+            np.testing.assert_allclose(data[key], values.mean(axis=0), rtol=1e-8, atol=1e-8)
+    assert np.max(data[f"{keys[0]}_std"]) > 0  # two different models do differ
+    if command == "ir":  # the spectrum is the mean of the members' broadened spectra
+        grid = np.asarray(data["spectrum_grid_cm-1"])
+        mean = np.mean([np.interp(grid, s["spectrum_grid_cm-1"],
+                                  s["spectrum_km_per_mol_per_cm-1"]) for s in singles], axis=0)
+        np.testing.assert_allclose(data["spectrum_km_per_mol_per_cm-1"], mean, rtol=1e-8,
+                                   atol=1e-10)

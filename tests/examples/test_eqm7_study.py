@@ -1,0 +1,244 @@
+"""The mini-eQM7 study pipeline (examples/eqm7/run_study.py) end to end on a tiny setting.
+
+A tiny sharded data set (the card's layout: molecules.csv + shards/0000.h5 with the hydride
+references) is built in a temporary folder from the shared eQM7 subset (the authors' PBE0 labels
+of six molecules, 8 configurations each); 2 models per group, a very small model, 2 epochs,
+DFT at the ``tiny`` level for the one test molecule (methane), 14 MD steps. Every stage must
+write its outputs, the numbers must be finite and consistent, and re-running must redo nothing.
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import math
+import sys
+
+import numpy as np
+import pytest
+
+from emlpack.data.references import load_hydrides
+from emlpack.data.store import DatasetStore
+from emlpack.io import read_structures
+from tests.conftest import ROOT, require, shared_path
+
+#: the six molecules of eqm7_pbe0_subset.xyz, 100 frames each in this order
+MOLECULES = [("methane", "C", 1, "test"), ("ethane", "CC", 2, "train"),
+             ("ethene", "C=C", 2, "val"), ("ethyne", "C#C", 2, "train"),
+             ("ethanol", "CCO", 3, "train"), ("cyclopropane", "C1CC1", 3, "train")]
+PER_MOLECULE = 8
+
+
+def _study_module():
+    spec = importlib.util.spec_from_file_location(
+        "eqm7_run_study", ROOT / "examples" / "eqm7" / "run_study.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def _tiny_dataset(folder):
+    """A data-set folder in the campaign's layout, from the shared PBE0 subset."""
+    frames = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"))
+    folder.mkdir()
+    (folder / "shards").mkdir()
+    with (folder / "molecules.csv").open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["name", "source", "smiles", "n_heavy", "split"])
+        for name, smiles, n_heavy, split in MOLECULES:
+            w.writerow([name, "eqm7_pbe0_subset", smiles, n_heavy, split])
+    records = []
+    for m, (name, *_rest) in enumerate(MOLECULES):
+        for k in range(PER_MOLECULE):
+            s = frames[100 * m + 7 * k]
+            records.append(s.copy(info={"key": f"{name}/nms/{k:04d}", "molecule_id": name,
+                                         "kind": "nms", "level": "pbe0/aug-cc-pvtz"}))
+    hydrides, energies = load_hydrides(shared_path("data/hydrides"))
+    for h, e in zip(hydrides, energies, strict=True):
+        name = h.info["molecule_id"]
+        records.append(h.copy(energy=float(e), info={
+            "key": f"hydride/{name}", "molecule_id": name, "kind": "hydride",
+            "level": "pbe0/aug-cc-pvtz"}))
+    with DatasetStore(folder / "shards" / "0000.h5", "a") as store:
+        store.append(records)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def study_run(tmp_path_factory):
+    require("pyscf")
+    mod = _study_module()
+    root = tmp_path_factory.mktemp("eqm7")
+    data = _tiny_dataset(root / "data")
+    overrides = [
+        f"data={data}", f"workdir={root / 'work'}", f"results_dir={root / 'results'}",
+        "seeds=[0, 1]",
+        "train.model.n_features=8", "train.model.n_filters=8", "train.model.n_rbf=8",
+        "train.model.n_interactions=1", "train.training.max_epochs=2",
+        "train.training.batch_size=8", "train.training.lr=0.005",
+        "train.training.max_time_minutes=null", "train.training.eval_batch_size=64",
+        "evaluate.max_structures=4", "evaluate.max_structures_second=3",
+        "dft.level=tiny", "dft.boys_starts=1", "dft.fmax=0.05", "dft.max_steps=30",
+        "ir.max_iterations=30", "ir.fmax=0.001",
+        "md.time_fs=7.0", "md.checkpoint_every=7", "md.log_every=7",
+    ]
+    cfg = mod.load_config(ROOT / "examples" / "eqm7" / "config.yaml", overrides)
+    lines: list[str] = []
+    study = mod.run(["all"], cfg, log=lines.append)
+    return mod, cfg, study, root, lines
+
+
+def test_every_stage_writes_its_outputs(study_run):
+    mod, cfg, study, root, _ = study_run
+    work = root / "work"
+    assert study.work == {"train": 4, "evaluate": 8 if "pbe0_subset" in mod.test_sets(study)
+                          else 4, "dft": 1, "polarizability": 4, "ir": 4, "md": 4, "table": 1,
+                          "export": 1}
+    for group in ("aug", "noaug"):
+        for seed in (0, 1):
+            run = work / "models" / group / f"seed{seed}"
+            assert (run / "best.pt").exists() and (run / "done.json").exists()
+            saved = (run / "config.yaml").read_text()
+            assert f"enabled: {'true' if group == 'aug' else 'false'}" in saved
+            name = f"{group}-s{seed}"
+            assert (work / "eval" / "test" / f"{name}.json").exists()
+            assert (work / "polarizability" / f"{name}.json").exists()
+            assert (work / "ir" / f"{name}.json").exists()
+            assert (work / "md" / name / "methane" / "analysis.json").exists()
+            assert (work / "md" / name / "methane" / "trajectory.xyz").exists()
+    dft = json.loads((root / "data" / "references" / "pbe0_sto-3g" / "methane.json").read_text())
+    assert dft["level"] == "pbe0/sto-3g"
+    alpha = np.array(dft["polarizability_bohr3"])
+    assert np.all(np.linalg.eigvalsh(alpha) > 0)  # a positive polarizability (sign convention)
+    freqs = np.array(dft["frequencies_cm-1"])
+    assert len(freqs) == 3 * 5 - 6 and np.all(freqs > 500)  # a minimum: real frequencies
+    assert np.all(np.array(dft["intensities_km_per_mol"]) >= 0)
+    assert (work / "figure3_md.png").stat().st_size > 1000
+    assert (work / "figure3_series.png").stat().st_size > 1000
+    assert (work / "figure4_ir.png").stat().st_size > 1000
+    assert (root / "results" / "results.json").exists()
+    md = (root / "results" / "results.md").read_text()
+    assert "Table 2" in md and "Table 3" in md and "Targets of issue 15" in md
+    assert "4.45 (± 0.11)" in md  # the paper's numbers beside ours
+
+
+def _finite(x, path="results"):
+    if isinstance(x, dict):
+        for k, v in x.items():
+            _finite(v, f"{path}.{k}")
+    elif isinstance(x, list):
+        for k, v in enumerate(x):
+            _finite(v, f"{path}[{k}]")
+    elif isinstance(x, float):
+        assert math.isfinite(x), path
+
+
+def test_results_are_finite_and_consistent(study_run):
+    mod, cfg, study, root, _ = study_run
+    res = json.loads((root / "results" / "results.json").read_text())
+    assert res["data"]["configurations"] == 6 * PER_MOLECULE
+    assert res["data"]["hydrides"] is True
+    ev = res["evaluation"]["test"]
+    _finite(ev)
+    for group in ("aug", "noaug"):
+        g = ev["groups"][group]
+        per_model = [json.loads((root / "work" / "eval" / "test" / f"{n}.json").read_text())
+                     for n in g["models"]]
+        assert len(per_model) == 2
+        for stat in ("mae", "median"):
+            for key in ("energy", "forces", "pair_forces"):
+                v = np.array([m["static"][key][stat] for m in per_model])
+                entry = g["static"][stat][key]
+                assert entry["mean"] == pytest.approx(v.mean())
+                assert entry["std"] == pytest.approx(v.std(ddof=1))
+        rates = np.array([m["dynamic"]["error_rate"] for m in per_model])
+        assert g["dynamic"]["error_rate"]["mean"] == pytest.approx(rates.mean())
+    pol = res["polarizability"]
+    assert pol["n_molecules"] == 1 and math.isfinite(pol["intrinsic_mae"])
+    for g in pol["groups"].values():
+        rates = [m["error_rate"] for m in g["per_model"].values()]
+        assert g["error_rate"]["mean"] == pytest.approx(np.mean(rates))
+        maes = [m["mae"] for m in g["per_model"].values() if m["mae"] is not None]
+        if maes:
+            assert g["mae"]["mean"] == pytest.approx(np.mean(maes))
+    md = res["md"]
+    assert sum(g["runs"] for g in md["groups"].values()) == 4
+    for g in md["groups"].values():
+        assert g["stable"] + g["transition"] + g["unstable"] == g["runs"]
+    assert len(res["targets"]) == 5
+    assert all(t["met"] in (True, False, None) for t in res["targets"])
+
+
+def test_export_ships_the_augmented_ensemble_with_its_card(study_run):
+    """A preliminary study exports into the work folder (never into the package); the export
+    loads by name, holds the augmented models and a card quoting the measured errors."""
+    from emlpack.calculators.ensemble import load_pretrained
+    from emlpack.pretrained import PRETRAINED_DIR, model_card
+
+    mod, cfg, study, root, _ = study_run
+    assert not (PRETRAINED_DIR / "mini-eqm7").exists() or cfg["status"] == "final"
+    folder = root / "work" / "pretrained"
+    ensemble = load_pretrained("mini-eqm7", root=folder)
+    assert len(ensemble.members) == 2
+    card = model_card("mini-eqm7", folder)
+    result = json.loads((root / "results" / "results.json").read_text())
+    mae = result["evaluation"]["test"]["groups"]["aug"]["static"]["mae"]["forces"]["mean"]
+    assert f"{1000 * mae:.1f}" in card            # the measured core-force MAE is quoted
+    assert "PBE0/aug-cc-pVTZ" in card and "How to cite" in card and "Domain" in card
+    assert "Status: **preliminary**" in card
+
+
+def test_rerun_redoes_nothing(study_run):
+    mod, cfg, study, root, _ = study_run
+    work = root / "work"
+    watched = [p for p in work.rglob("*") if p.is_file() and p.suffix in (".pt", ".json",
+                                                                           ".xyz", ".npz")]
+    before = {p: p.stat().st_mtime_ns for p in watched}
+    lines: list[str] = []
+    again = mod.run(["train", "evaluate", "dft", "polarizability", "ir", "md"], cfg,
+                    log=lines.append)
+    assert sum(again.work.values()) == 0, again.work
+    assert {p: p.stat().st_mtime_ns for p in watched} == before
+    assert any("skipped" in line for line in lines)
+
+
+@pytest.mark.slow
+def test_dft_route_matches_finite_differences():
+    """The dft stage's IR route (~30 s): Born charges from the field-perturbed forces equal the
+    finite-difference dipole derivatives, and the frequencies equal PySCF's harmonic analysis."""
+    require("pyscf")
+    from pyscf.hessian import thermo
+
+    from emlpack.qm.labeling import pyscf_hessian
+    from emlpack.qm.pyscf_labeler import PySCFLabeler
+    from emlpack.units import FIELD_AU_IN_V_PER_A
+
+    mod = _study_module()
+    lab = PySCFLabeler("tiny", boys_starts=1)
+    z = np.array([8, 1, 1])
+    r = np.array([[0.0, 0.0, 0.12], [0.0, 0.76, -0.47], [0.0, -0.76, -0.47]])
+    f = 1e-3 * FIELD_AU_IN_V_PER_A
+    born = np.zeros((3, 9))
+    for a in range(3):
+        e = np.zeros(3)
+        e[a] = f
+        plus, minus = lab(z, r, field=e, localize=False), lab(z, r, field=-e, localize=False)
+        born[a] = ((plus.forces - minus.forces) / (2 * f)).ravel()
+    h = 1e-3
+    fd = np.zeros_like(born)
+    for i in range(9):
+        d = np.zeros(9)
+        d[i] = h
+        plus = lab(z, r + d.reshape(3, 3), forces=False, localize=False)
+        minus = lab(z, r - d.reshape(3, 3), forces=False, localize=False)
+        fd[:, i] = (plus.dipole - minus.dipole) / (2 * h)
+    assert np.abs(born - fd).max() < 1e-3 * np.abs(fd).max() + 1e-4
+    hess = pyscf_hessian(lab, z, r)
+    ir = mod.harmonic_ir(hess, born, z, r)
+    mol, mf = lab.build(z, r, np.zeros(3), 0.0)
+    mf.kernel()
+    ref = thermo.harmonic_analysis(mol, mf.Hessian().kernel())["freq_wavenumber"]
+    assert np.allclose(ir["frequencies"], np.real(ref), atol=0.5)
+    assert np.all(ir["intensities"] > 0)

@@ -1,0 +1,83 @@
+"""emlpack.pairs: the one check of relaxed pairs (minimum image, thresholds per caller) and the
+solvers behind one interface (the warm-start solver's core forces are the model's)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from ase import Atoms
+
+from emlpack.calculators.ase import EMLPCalculator
+from emlpack.dynamics.md import Watchdog
+from emlpack.pairs.checks import check_pairs
+from emlpack.pairs.relax import RelaxOptions, relax_pairs
+from emlpack.pairs.solvers import BatchedSolver, BoxedLBFGSB, PairSolver, WarmStartSolver
+from emlpack.structure import Structure
+from tests.nn.helpers import water_molecule
+from tests.properties.toy import spring_model
+
+CELL = 5.0 * np.eye(3)
+
+
+def test_check_pairs_uses_the_minimum_image():
+    """Across a periodic boundary two pairs 0.03 Å apart have merged and a pair 0.2 Å from a
+    core's image is at home; without the cell the pairs are 4.97 Å apart and one is stray."""
+    cores = np.array([[0.1, 2.5, 2.5], [2.5, 2.5, 2.5]])
+    pairs = np.array([[0.02, 2.0, 2.0], [4.99, 2.0, 2.0], [4.9, 2.5, 2.5]])
+    periodic = check_pairs(pairs, cores, CELL, True)
+    assert "pairs 0 and 1 are 0.03 Å apart (merged; threshold 0.1 Å)" in periodic
+    assert "nearest core" not in periodic
+    molecule = check_pairs(pairs, cores)
+    assert "merged" not in molecule
+    assert "pair 1 is 2.59 Å from the nearest core (threshold 2 Å)" in molecule
+
+
+def test_thresholds_per_caller():
+    """Relaxation: merged below 0.1 Å; MD's watchdog (docs/md.md): below 0.2 Å."""
+    cores = np.zeros((1, 3))
+    pairs = np.array([[0.5, 0.0, 0.0], [0.5, 0.15, 0.0]])
+    assert RelaxOptions().min_pair_distance == 0.1
+    assert check_pairs(pairs, cores) == ""
+    assert "threshold 0.2 Å" in Watchdog().check(cores, pairs, {})
+    assert "negative pair curvature" in check_pairs(pairs, cores, min_curvature=-1e-3)
+    assert "no convergence to fmax=1e-05 eV/Å" in check_pairs(pairs, cores, converged=False,
+                                                                fmax=1e-5)
+
+
+@pytest.fixture(scope="module")
+def water():
+    torch.set_num_threads(1)
+    s = water_molecule()
+    return spring_model(s), s
+
+
+def test_solvers_share_one_interface(water):
+    model, s = water
+    start = s.copy(pairs=s.pairs + 0.05)
+    for solver in (BatchedSolver(RelaxOptions(fmax=1e-7)), WarmStartSolver(fmax=1e-7),
+                   BoxedLBFGSB(fmax=1e-7)):
+        assert isinstance(solver, PairSolver)
+        r = solver.relax(model, start)
+        assert r.converged and not r.reason, (type(solver).__name__, r.reason)
+        ref = relax_pairs(model, start, fmax=1e-9)[0]
+        np.testing.assert_allclose(r.pairs, ref.pairs, atol=1e-5)
+
+
+def test_warm_start_core_forces_are_the_models(water):
+    """The calculator takes the warm-start solver's core forces without evaluating again: they
+    equal the model's forces at the returned pairs, over a few moved geometries."""
+    model, s = water
+    solver = WarmStartSolver(fmax=1e-8)
+    atoms = Atoms(s.numbers, s.positions)
+    atoms.calc = EMLPCalculator(model, pairs=s.pairs, pair_solver=solver, check_bonding=False)
+    rng = np.random.default_rng(0)
+    for _ in range(4):
+        atoms.positions = s.positions + rng.normal(scale=0.02, size=s.positions.shape)
+        forces = atoms.get_forces()
+        pairs = atoms.calc.results["electron_pairs"]
+        out = model.evaluate(Structure(s.numbers, atoms.positions, pairs), dtype=torch.float64)
+        np.testing.assert_allclose(forces, out["forces"], atol=1e-9)
+        assert atoms.get_potential_energy() == pytest.approx(out["energy"], abs=1e-10)
+        assert np.abs(out["pair_forces"]).max() < 1e-7
+    assert len(solver.history) == 4

@@ -1,0 +1,163 @@
+"""The default pair relaxation (analytic electrostatic pair Hessian + SR1 short-range model):
+its analytic electrostatics equal autograd, and it reaches the exact-Newton minima."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from emlpack.io import read_structures
+from emlpack.nn.checkpoint import load_model as load_checkpoint
+from emlpack.nn.electrostatics import coulomb_molecular, ewald_reciprocal
+from emlpack.pairs.relax import _CoulombPairs, _PairProblem, relax_pairs
+from tests.conftest import shared_path
+from tests.legacy.test_reference_fixtures import load_model
+
+TRAINED = Path(__file__).resolve().parents[2] / "benchmarks" / "fixtures" / "eqm7_small_trained.pt"
+
+
+@pytest.fixture(scope="module")
+def small():
+    return load_model("small")
+
+
+@pytest.fixture(scope="module")
+def trained():
+    model = load_checkpoint(TRAINED)
+    model.eval()
+    return model
+
+
+def _electrostatic_reference(model, g, prob, x):
+    c = model.config
+
+    def energy(x):
+        pos = g.positions.index_put((prob.pair_idx,), x)
+        return (
+            coulomb_molecular(pos, g.charges, g.coulomb_i, g.coulomb_j, g.batch, ~g.pbc,
+                              g.n_structures, c.gamma, c.coulomb_eps)
+            + ewald_reciprocal(pos, g.charges, g.batch, g.cell, g.kvec_n, g.kvec_batch, c.gamma)
+        ).sum()
+
+    return torch.func.grad(energy)(x), torch.func.hessian(energy)(x)
+
+
+def test_analytic_electrostatic_pair_hessian_equals_autograd(small):
+    """Molecules (Gaussian Coulomb) and a crystal (reciprocal Ewald) in one batch: the analytic
+    pair gradient and every pair-pair 3x3 block equal autograd to 1e-10 relative."""
+    mol = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), index="60:62")
+    crystal = read_structures(shared_path("data/beta_glycine_pbe_wannier.xyz"), index="0:1")
+    g = small.graph(mol + crystal, dtype=torch.float64)
+    prob = _PairProblem(small, g)
+    x = g.positions[prob.pair_idx].clone()
+    x = x + 0.05 * torch.sin(torch.arange(x.numel(), dtype=x.dtype)).reshape(x.shape)
+    grad, hess = _CoulombPairs(small, prob)(x)
+    g_ref, h_ref = _electrostatic_reference(small, g, prob, x)
+    assert torch.abs(grad - g_ref).max() <= 1e-10 * torch.abs(g_ref).max()
+    n = len(x)
+    dense = torch.zeros(n, 3, n, 3, dtype=x.dtype)
+    for a in range(n):
+        for b in range(n):
+            if prob.pair_batch[a] == prob.pair_batch[b]:
+                s, la, lb = prob.pair_batch[a], prob.local[a], prob.local[b]
+                dense[a, :, b, :] = hess[s, 3 * la:3 * la + 3, 3 * lb:3 * lb + 3]
+    # pairs of different structures do not interact
+    assert torch.abs(dense - h_ref).max() <= 1e-10 * torch.abs(h_ref).max()
+
+
+def _starts(index: str, amount: float = 0.05, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    out = []
+    for s in read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), index=index):
+        v = rng.normal(size=s.pairs.shape)
+        out.append(s.copy(pairs=s.pairs + amount * v / np.linalg.norm(v, axis=1, keepdims=True)))
+    return out
+
+
+@pytest.mark.parametrize("which", ["small", "trained"])
+def test_quasi_newton_reaches_the_exact_newton_minima(which, small, trained):
+    """Same converged structures, energies within 1e-6 eV, on the fixture (random) weights and
+    on the small trained model; the quasi-Newton computes no exact Hessian on the way."""
+    model = small if which == "small" else trained
+    starts = _starts("::75")  # 8 configurations spread over the 6 molecules
+    qn = relax_pairs(model, starts, fmax=1e-6, check_curvature=False, newton_after=0)
+    ref = relax_pairs(model, starts, fmax=1e-6, initial_hessian="exact", check_curvature=False)
+    compared = 0
+    for a, b in zip(qn, ref, strict=True):
+        if b.failed:  # random weights merge some pairs; those are no minima to compare
+            continue
+        assert not a.failed, a.reason
+        assert a.max_force < 1e-6
+        assert a.energy == pytest.approx(b.energy, abs=1e-6)
+        assert a.n_hessians == 0
+        compared += 1
+    assert compared >= (8 if which == "trained" else 2)
+
+
+def test_exact_newton_finish_converges_what_the_quasi_newton_left(trained):
+    """With ``newton_after=2`` unconverged structures switch to the exact-Hessian Newton method
+    and reach the same minimum as the quasi-Newton alone."""
+    starts = _starts("0:2")
+    alone = relax_pairs(trained, starts, fmax=1e-7, newton_after=0, check_curvature=False)
+    mixed = relax_pairs(trained, starts, fmax=1e-7, newton_after=2)
+    for a, b in zip(alone, mixed, strict=True):
+        assert a.converged and b.converged
+        assert b.n_hessians >= 2  # at least one in the Newton finish, one for the curvature
+        assert b.energy == pytest.approx(a.energy, abs=1e-8)
+        assert b.min_curvature > 0
+
+
+def test_unknown_method_is_refused(small):
+    s = _starts("0:1")[0]
+    with pytest.raises(ValueError, match="initial_hessian"):
+        relax_pairs(small, s, initial_hessian="newton")
+
+
+def test_overrides_do_not_change_the_callers_options():
+    from emlpack.io import read_structures
+    from emlpack.pairs.relax import RelaxOptions, relax_pairs
+    from tests.conftest import shared_path
+    from tests.legacy.test_reference_fixtures import load_model
+
+    model = load_model("small")
+    methane = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), index=63)[0]
+    opts = RelaxOptions(fmax=1e-3)
+    with pytest.raises(TypeError, match="unknown relaxation option"):
+        relax_pairs(model, methane, opts, no_such_option=1)
+    relax_pairs(model, methane, opts, fmax=1e-5, max_iterations=3)
+    assert opts.fmax == 1e-3 and opts.max_iterations == 100
+
+
+@pytest.mark.parametrize("which", ["small", "trained"])
+def test_held_core_core_filters_equal_plain_evaluation(which, small, trained):
+    """The relaxation's energy with the core-core SchNet filters computed once (cores fixed)
+    equals the plain model energy, gradient and Hessian-vector product to 1e-12 relative in
+    float64: molecules and a crystal (image shifts) in one batch."""
+    model = small if which == "small" else trained
+    mol = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), index="60:62")
+    crystal = read_structures(shared_path("data/beta_glycine_pbe_wannier.xyz"), index="0:1")
+    structures = mol + crystal if set(model.config.elements) >= {1, 6, 7, 8} else mol
+    flags = [p.requires_grad for p in model.parameters()]
+    for p in model.parameters():
+        p.requires_grad_(False)
+    try:
+        g = model.graph(structures, dtype=torch.float64)
+        plain = _PairProblem(model, g, hold_filters=False)
+        held = _PairProblem(model, g)
+        assert plain.held is None and held.held is not None
+        assert 0 < len(held.held.i) < len(g.edge_i)
+        x = g.positions[plain.pair_idx].clone()
+        x = x + 0.05 * torch.sin(torch.arange(x.numel(), dtype=x.dtype)).reshape(x.shape)
+        e0, g0 = plain.energy_gradient(x)
+        e1, g1 = held.energy_gradient(x)
+        assert torch.abs(e1 - e0).max() <= 1e-12 * torch.abs(e0).max()
+        assert torch.abs(g1 - g0).max() <= 1e-12 * torch.abs(g0).max()
+        v = torch.cos(torch.arange(x.numel(), dtype=x.dtype)).reshape(x.shape)
+        h0, h1 = plain.hvp(x, v), held.hvp(x, v)
+        assert torch.abs(h1 - h0).max() <= 1e-12 * torch.abs(h0).max()
+    finally:
+        for p, f in zip(model.parameters(), flags, strict=True):
+            p.requires_grad_(f)
