@@ -195,10 +195,10 @@ class Study:
 
 # ---------------------------------------------------------------------- helpers
 def _write_text(path: Path, text: str) -> None:
+    from emlpack._files import write_text_atomic
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    write_text_atomic(path, text)
 
 
 def _jsonable(x):
@@ -246,11 +246,11 @@ def _cached(path: Path, compute):
     if path.exists():
         with np.load(path) as d:
             return {k: d[k] for k in d.files}
+    from emlpack._files import write_npz_atomic
+
     out = {k: np.asarray(v) for k, v in compute().items()}
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
-    np.savez(tmp, **out)
-    os.replace(tmp, path)
+    write_npz_atomic(path, **out)
     return out
 
 
@@ -401,7 +401,7 @@ def dft_molecule(study: Study, row: dict, labeler) -> dict:
     from ase import Atoms
     from ase.optimize import BFGS
 
-    from emlpack.qm.labeling import labeler_calculator, pyscf_hessian
+    from emlpack.qm.labeling import finite_difference_hessian, labeler_calculator, pyscf_hessian
     from emlpack.units import COULOMB_EV_A, FIELD_AU_IN_V_PER_A, POLARIZABILITY_A3_IN_BOHR3
 
     d = study.cfg.get("dft", {})
@@ -467,8 +467,21 @@ def dft_molecule(study: Study, row: dict, labeler) -> dict:
     alpha = ((dip[:, 0] - dip[:, 1]) / (2 * f_v)).T
     alpha = 0.5 * (alpha + alpha.T)
     born = ((frc[:, 0] - frc[:, 1]) / (2 * f_v)).reshape(3, -1)
-    hess = _cached(cache / "hessian.npz",
-                   lambda: {"hessian": pyscf_hessian(labeler, numbers, pos)})["hessian"]
+    method = str(d.get("hessian", "finite-difference"))
+    if method not in ("finite-difference", "analytic"):
+        raise ValueError(f"dft.hessian: 'finite-difference' or 'analytic', got {method!r}")
+
+    def hessian():
+        if method == "analytic":
+            return {"hessian": pyscf_hessian(labeler, numbers, pos), "method": method}
+        atoms = Atoms(numbers=numbers, positions=pos)
+        atoms.calc = labeler_calculator(labeler)
+        delta = float(d.get("hessian_delta", 0.005))
+        return {"hessian": finite_difference_hessian(atoms, delta, cache=cache / "vib"),
+                "method": f"{method} (central, {delta:g} Å)"}
+
+    h = _cached(cache / "hessian.npz", hessian)
+    hess = h["hessian"]
     ir = harmonic_ir(hess, born, numbers, pos)
     to_bohr3 = COULOMB_EV_A * POLARIZABILITY_A3_IN_BOHR3
     return {
@@ -483,6 +496,7 @@ def dft_molecule(study: Study, row: dict, labeler) -> dict:
         "polarizability_bohr3": (alpha * to_bohr3).tolist(),
         "polarizability_isotropic_bohr3": float(np.trace(alpha) * to_bohr3 / 3),
         "born_charges_e": born.tolist(), "hessian_eV_A2": hess.tolist(),
+        "hessian_method": str(h["method"]) if "method" in h else "analytic",
         "frequencies_cm-1": ir["frequencies"].tolist(),
         "intensities_km_per_mol": ir["intensities"].tolist(),
         "wall_s_this_call": time.perf_counter() - t0,

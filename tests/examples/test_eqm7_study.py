@@ -206,12 +206,14 @@ def test_rerun_redoes_nothing(study_run):
 
 @pytest.mark.slow
 def test_dft_route_matches_finite_differences():
-    """The dft stage's IR route (~30 s): Born charges from the field-perturbed forces equal the
-    finite-difference dipole derivatives, and the frequencies equal PySCF's harmonic analysis."""
+    """The dft stage's IR route (~40 s): Born charges from the field-perturbed forces equal the
+    finite-difference dipole derivatives, the frequencies equal PySCF's harmonic analysis, and the
+    finite-difference Hessian (the stage's default) gives the analytic one's spectrum."""
     require("pyscf")
+    from ase import Atoms
     from pyscf.hessian import thermo
 
-    from emlpack.qm.labeling import pyscf_hessian
+    from emlpack.qm.labeling import finite_difference_hessian, labeler_calculator, pyscf_hessian
     from emlpack.qm.pyscf_labeler import PySCFLabeler
     from emlpack.units import FIELD_AU_IN_V_PER_A
 
@@ -242,3 +244,9 @@ def test_dft_route_matches_finite_differences():
     ref = thermo.harmonic_analysis(mol, mf.Hessian().kernel())["freq_wavenumber"]
     assert np.allclose(ir["frequencies"], np.real(ref), atol=0.5)
     assert np.all(ir["intensities"] > 0)
+    # the stage's default Hessian: central differences of the forces (resumable per displacement)
+    atoms = Atoms(numbers=z, positions=r)
+    atoms.calc = labeler_calculator(lab)
+    fd_ir = mod.harmonic_ir(finite_difference_hessian(atoms, 0.005), born, z, r)
+    assert np.allclose(fd_ir["frequencies"], ir["frequencies"], atol=2.0)
+    assert np.allclose(fd_ir["intensities"], ir["intensities"], rtol=0.02)

@@ -241,3 +241,36 @@ def _check_hydride_references(tmp_path, extra_recipe: str, fmax: float, smiles: 
             assert s.energy == refs[name]["energy"]
             assert np.abs(s.forces).max() < fmax  # optimised at the same level
         assert by_id["H2O"].n_pairs == 4 and by_id["H2"].n_pairs == 1
+
+
+def test_finite_difference_hessian_resumes_from_its_cache(tmp_path):
+    """The cached finite-difference Hessian equals an uncached one, and a rerun after a kill
+    recomputes only the displacements whose files are empty or cut (EMT water, 18
+    displacements)."""
+    from ase.build import molecule
+    from ase.calculators.emt import EMT
+
+    from emlpack.qm.labeling import finite_difference_hessian
+
+    class Counting(EMT):
+        calls = 0
+
+        def calculate(self, *args, **kwargs):
+            Counting.calls += 1
+            super().calculate(*args, **kwargs)
+
+    atoms = molecule("H2O")
+    atoms.calc = Counting()
+    plain = finite_difference_hessian(atoms)
+    cache = tmp_path / "vib"
+    first = finite_difference_hessian(atoms, cache=cache)
+    np.testing.assert_allclose(first, plain, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(first, first.T, atol=1e-3)  # a Hessian, and finite differences
+    files = sorted(f for f in cache.glob("cache.*.json") if f.name != "cache.eq.json")
+    assert len(files) == 2 * 3 * len(atoms)  # and the undisplaced cache.eq.json
+    files[0].write_text("")                                # locked, killed before writing
+    files[1].write_text(files[1].read_text()[:20])         # killed while writing
+    Counting.calls = 0
+    again = finite_difference_hessian(atoms, cache=cache)
+    assert Counting.calls == 2
+    np.testing.assert_allclose(again, first, rtol=0, atol=1e-12)

@@ -168,16 +168,34 @@ def _preparation_calculator(level: str, threads: int | None):
     return labeler_calculator(PySCFLabeler(level, threads=threads))
 
 
-def _finite_difference_hessian(atoms, delta: float = 0.005) -> np.ndarray:
-    """Cartesian Hessian (eV/Å^2) by central differences of the forces (ASE Vibrations)."""
+def finite_difference_hessian(atoms, delta: float = 0.005, cache: str | Path | None = None
+                              ) -> np.ndarray:
+    """Cartesian Hessian (eV/Å^2) by central differences of the forces (ASE Vibrations).
+
+    ``cache``: a folder for ASE's per-displacement force files, so that an interrupted run
+    resumes with the displacements it finished (one process per folder); a file left empty or
+    cut by a kill is recomputed. Without it the displacements live in a temporary folder.
+    """
+    import json
     import tempfile
 
     from ase.vibrations import Vibrations
 
-    with tempfile.TemporaryDirectory(prefix="emlp-vib-") as tmp:
-        vib = Vibrations(atoms, name=str(Path(tmp) / "vib"), delta=delta, nfree=2)
+    def run(folder: Path) -> np.ndarray:
+        folder.mkdir(parents=True, exist_ok=True)
+        for f in folder.glob("cache.*.json"):  # an unfinished displacement: compute it again
+            try:
+                json.loads(f.read_text())
+            except ValueError:
+                f.unlink()
+        vib = Vibrations(atoms, name=str(folder), delta=delta, nfree=2)
         vib.run()
         return vib.get_vibrations().get_hessian_2d()
+
+    if cache is not None:
+        return run(Path(cache))
+    with tempfile.TemporaryDirectory(prefix="emlp-vib-") as tmp:
+        return run(Path(tmp) / "vib")
 
 
 def prepare_task(source, level: str, optimize: bool, fmax: float, seed: int,
@@ -206,7 +224,7 @@ def prepare_task(source, level: str, optimize: bool, fmax: float, seed: int,
     if not hessian:
         mol.hessian = np.zeros((n, n))
     elif level in XTB_LEVELS:
-        mol.hessian = _finite_difference_hessian(atoms)
+        mol.hessian = finite_difference_hessian(atoms)
     else:
         mol.hessian = pyscf_hessian(PySCFLabeler(level, threads=threads), mol.numbers,
                                     mol.positions)
