@@ -1,0 +1,62 @@
+#!/usr/bin/env bash
+# DFT references of the study's test molecules in the background, committed as they finish.
+#
+#   bash examples/eqm7/references.sh [NAME ...]      (from the project root; default: every test
+#                                                     molecule of the card, in the card's order)
+#
+# Runs `run_study.py dft` (resumable: BFGS step by step, ground state, each field, each Hessian
+# displacement) and every COMMIT_MINUTES (default 20) commits the finished reference files only:
+# .npz sub-results, NAME.json, and the displacement files of NAME/vib/ that are complete JSON (a
+# file being written is never committed). Restart it after a session ends: nothing finished is lost.
+# Log: runs/eqm7-references.log. Stop: kill both PIDs it prints (the watcher commits once more
+# when the stage ends by itself).
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+PY=${PYTHON:-.venv/bin/python}
+REFS=datasets/mini-eqm7/references
+LOG=runs/eqm7-references.log
+mkdir -p runs
+names=""
+if [ $# -gt 0 ]; then names="molecules=[$(IFS=,; echo "$*")]"; fi
+
+commit_finished() {
+  "$PY" - "$REFS" <<'PYEOF'
+import json, subprocess, sys
+from pathlib import Path
+refs = Path(sys.argv[1])
+done = []
+for p in sorted(refs.rglob("*")):
+    if not p.is_file() or p.name.startswith("."):
+        continue
+    if p.suffix == ".json":
+        try:
+            json.loads(p.read_text())
+        except ValueError:
+            continue  # being written
+    elif p.suffix != ".npz":
+        continue
+    done.append(str(p))
+new = subprocess.run(["git", "ls-files", "--others", "--exclude-standard", "--", *done],
+                     capture_output=True, text=True, check=True).stdout.split()
+if new:
+    subprocess.run(["git", "add", "--", *new], check=True)
+    subprocess.run(["git", "commit", "-q", "-m",
+                    f"mini-eqm7 DFT references: {len(new)} finished files", "--", *new], check=True)
+    print(f"committed {len(new)} files", flush=True)
+PYEOF
+}
+
+(
+  OMP_WAIT_POLICY=PASSIVE nohup "$PY" examples/eqm7/run_study.py dft $names >> "$LOG" 2>&1 &
+  job=$!
+  echo "dft stage: PID $job, log $LOG"
+  while kill -0 "$job" 2>/dev/null; do
+    for _ in $(seq $((${COMMIT_MINUTES:-20} * 6))); do
+      kill -0 "$job" 2>/dev/null || break
+      sleep 10
+    done
+    commit_finished >> "$LOG" 2>&1 || echo "commit failed (retrying later)" >> "$LOG"
+  done
+  commit_finished >> "$LOG" 2>&1 || true
+) &
+echo "references: watcher PID $!"
