@@ -21,7 +21,7 @@ from emlpack.units import FIELD_AU_IN_V_PER_A
 DEFAULT_DATA_DIRS = ("/usr/share/cp2k", "/usr/share/cp2k/data", "/usr/local/share/cp2k")
 
 #: orientation of CP2K's PERIODIC_EFIELD POLARISATION relative to our field vector, chosen so
-#: that E(F) - E(0) = -μ·F (checked by tests/qm/test_cp2k_labeler.py)
+#: that E(F) - E(0) = -μ·F (checked by tests/qm/cp2k/test_labeler.py)
 _FIELD_SIGN = 1.0
 
 
