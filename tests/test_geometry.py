@@ -77,7 +77,7 @@ def test_carried_pairs_keep_their_offsets_and_follow_the_cell():
 # ------------------------------------------------- callers that had a 27-image search by hand
 #: a valid but strongly skewed cell (Minkowski-reduced: 2.8, 2.9, 3.4 Å edges), where wrapping
 #: the fractional vector into [-1/2, 1/2) and searching the 27 neighbouring images (the former
-#: code of io/cores.py, data/augment.py and qm/cp2k.py) misses the shortest image
+#: code of io/cores.py, data/augment.py and qm/cp2k/output.py) misses the shortest image
 VERY_SKEWED = np.array([[5.0, 0.0, 0.0], [12.0, 2.0, 0.0], [3.0, 1.0, 2.5]])
 #: a vector whose minimum image is 1.241 Å long; the former search returned 2.267 Å
 SHORT = np.array([2.1, 0.8, 0.3])
@@ -114,7 +114,7 @@ def test_minimum_image_distances_of_the_skewed_cell():
 
 
 def test_cp2k_centres_map_to_the_core_nearest_by_minimum_image():
-    """qm/cp2k.py: the centre is 1.24 Å from core 0 (through a far image) and 1.40 Å
+    """qm/cp2k/output.py: the centre is 1.24 Å from core 0 (through a far image) and 1.40 Å
     from core 1; the 27-image search saw 2.27 Å to core 0 and picked core 1."""
     from emlpack.qm.cp2k import map_centres_to_cores
 
