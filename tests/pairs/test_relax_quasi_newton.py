@@ -97,6 +97,18 @@ def test_quasi_newton_reaches_the_exact_newton_minima(which, small, trained):
     assert compared >= (8 if which == "trained" else 2)
 
 
+def test_float32_start_reaches_the_float64_minima(trained):
+    """The float32 start phase (forced on for a small batch) ends at the float64 quasi-Newton
+    minima: energies within 1e-6 eV, forces converged in float64."""
+    starts = _starts("::75")
+    f64 = relax_pairs(trained, starts, fmax=1e-6, check_curvature=False, float32_above=0)
+    f32 = relax_pairs(trained, starts, fmax=1e-6, check_curvature=False, float32_min_pairs=0)
+    for a, b in zip(f32, f64, strict=True):
+        assert not a.failed, a.reason
+        assert a.max_force < 1e-6
+        assert a.energy == pytest.approx(b.energy, abs=1e-6)
+
+
 def test_exact_newton_finish_converges_what_the_quasi_newton_left(trained):
     """With ``newton_after=2`` unconverged structures switch to the exact-Hessian Newton method
     and reach the same minimum as the quasi-Newton alone."""

@@ -203,12 +203,14 @@ class SchNet(nn.Module):
     # 0.36M, about a quarter of the model's work). The products are formed in float64 once per
     # parameter version and cached; the result equals the plain evaluation up to rounding.
     def folded_weights(self, dtype: torch.dtype, device) -> dict:
-        """The frozen-weight tables and matrices described above (cached per parameter
-        version): ``tables``, ``cross``, ``table_out``, ``w_out``, ``filters`` (per interaction
-        ``(w1, b1, w2, b2, wc, bc)``, ``wc`` divided by the message norm) and ``heads``."""
+        """The frozen-weight tables and matrices described above (cached per dtype, device and
+        parameter version): ``tables``, ``cross``, ``table_out``, ``w_out``, ``filters`` (per
+        interaction ``(w1, b1, w2, b2, wc, bc)``, ``wc`` divided by the message norm) and
+        ``heads``."""
         params = list(self.parameters())
-        key = (dtype, str(device), tuple((id(p), p._version, p.data_ptr()) for p in params))
-        cache = getattr(self, "_fold_cache", None)
+        key = tuple((id(p), p._version, p.data_ptr()) for p in params)
+        caches = self.__dict__.setdefault("_fold_cache", {})  # per dtype and device
+        cache = caches.get((dtype, str(device)))
         if cache is not None and cache[0] == key:
             return cache[1]
         with torch.no_grad():
@@ -263,7 +265,7 @@ class SchNet(nn.Module):
                 "filters": [tuple(cast(x) for x in f) for f in filters],
                 "heads": [tuple(cast(x) for x in h) for h in heads],
             }
-        self._fold_cache = (key, out)
+        caches[(dtype, str(device))] = (key, out)
         return out
 
     def filter_taylor(self, r: torch.Tensor) -> list[tuple[torch.Tensor, ...]]:
