@@ -140,7 +140,7 @@ class EMLPCalculator(Calculator):
 
     def check_state(self, atoms: Atoms, tol: float = 1e-15) -> list[str]:
         """ASE's changes plus ``field`` and ``electron_pairs`` given in ``atoms.info``."""
-        changes = super().check_state(atoms, tol)
+        changes = [] if self._same_atoms(atoms) else super().check_state(atoms, tol)
         if self._last_field is None or not np.array_equal(self._field_of(atoms), self._last_field):
             changes.append("field")
         given = atoms.info.get(PAIRS_KEY)
@@ -149,6 +149,20 @@ class EMLPCalculator(Calculator):
         ):
             changes.append("electron_pairs")
         return changes
+
+    def _same_atoms(self, atoms: Atoms) -> bool:
+        """True when ``atoms`` equal the last calculation's bit for bit (cell, pbc and every
+        array ASE compares): then ASE's tolerance comparison finds no change either, so MD's
+        second force call per step skips its ``allclose`` tests (any difference falls back
+        to ASE's comparison)."""
+        done = self.atoms
+        if done is None or done.arrays.keys() != atoms.arrays.keys():
+            return False
+        if not (np.array_equal(done.cell.array, atoms.cell.array)
+                and np.array_equal(done.pbc, atoms.pbc)):
+            return False
+        return all(np.array_equal(done.arrays[k], atoms.arrays[k])
+                   for k in all_changes if k in atoms.arrays)
 
     def reset(self) -> None:
         """Forget results, the warm start and the solvers' warm-start state."""

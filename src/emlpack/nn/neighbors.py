@@ -7,6 +7,8 @@ message both ways.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import vesin
 
@@ -32,7 +34,11 @@ def half_neighbor_list(
     return i.astype(np.int64), j.astype(np.int64), shifts.astype(np.int64)
 
 
+@functools.lru_cache(maxsize=64)
 def all_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """All unordered pairs ``i < j`` of ``n`` particles (for the molecular Coulomb sum)."""
+    """All unordered pairs ``i < j`` of ``n`` particles (for the molecular Coulomb sum);
+    cached per ``n`` (MD and relaxations rebuild graphs of one size), read-only arrays."""
     i, j = np.triu_indices(n, k=1)
-    return i.astype(np.int64), j.astype(np.int64)
+    i, j = i.astype(np.int64), j.astype(np.int64)
+    i.flags.writeable = j.flags.writeable = False
+    return i, j

@@ -850,22 +850,24 @@ def _relax(model, structures, opts, bounds) -> list[RelaxResult]:
                     fmax, min_curv, opts)
 
 
-def damped_bfgs(h: torch.Tensor, s: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+def damped_bfgs(h, s, y):
     """Powell-damped BFGS update of Hessian models ``h`` (B, m, m) that keeps them positive
-    definite; structures with a zero step keep their model."""
+    definite; structures with a zero step keep their model. Torch tensors or numpy arrays
+    (``h``, ``s``, ``y`` alike; numpy spares the small models of MD torch's per-call cost)."""
+    xp = np if isinstance(h, np.ndarray) else torch
     hs = (h @ s[:, :, None]).squeeze(-1)
     shs = (s * hs).sum(1)
     sy = (s * y).sum(1)
-    theta = torch.where(sy >= 0.2 * shs, torch.ones_like(sy), 0.8 * shs / (shs - sy))
+    theta = xp.where(sy >= 0.2 * shs, xp.ones_like(sy), 0.8 * shs / (shs - sy))
     r = theta[:, None] * y + (1 - theta[:, None]) * hs
     sr = (s * r).sum(1)
     ok = (shs > 1e-20) & (sr > 1e-20)
-    shs_safe = torch.where(ok, shs, 1.0)
-    sr_safe = torch.where(ok, sr, 1.0)
+    shs_safe = xp.where(ok, shs, 1.0)
+    sr_safe = xp.where(ok, sr, 1.0)
     update = -hs[:, :, None] * hs[:, None, :] / shs_safe[:, None, None] + (
         r[:, :, None] * r[:, None, :] / sr_safe[:, None, None]
     )
-    return torch.where(ok[:, None, None], h + update, h)
+    return xp.where(ok[:, None, None], h + update, h)
 
 
 def _results(structures, prob, x, energy, grad, converged, iters, n_eval, n_hess, fmax,

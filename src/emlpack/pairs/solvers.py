@@ -44,6 +44,8 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 import torch
+from scipy.linalg.lapack import dpotrf as _potrf
+from scipy.linalg.lapack import dpotrs as _potrs
 
 from emlpack.geometry import carry_pairs, nearest_cores
 from emlpack.nn.potential import EMLP
@@ -315,18 +317,19 @@ class WarmStartSolver:
         x = structure.pairs.copy()
         m = x.size
         n_hess = 0
+        # the best rotation of the last step's cores onto these (one SVD for both blocks)
+        rot = _kabsch(self.history[-1][0], structure.positions) if self.history else None
         if self.hessian is None or self.hessian.shape != (m, m):
             self._exact_hessian(model, structure)
             n_hess += 1
             self.n_hessians += 1
-        elif len(self.history):
-            self.hessian = _rotate_hessian(self.hessian, self.history[-1][0], structure.positions)
+        elif rot is not None:
+            self.hessian = _rotate_block(self.hessian, rot)
         if self.coupling is None or self.coupling.shape != (3 * nc, m):
             self.coupling = np.zeros((3 * nc, m))  # (plain warm mode: unused)
             self.model_error = 1.0
-        elif len(self.history):
-            self.coupling = _rotate_hessian(self.coupling, self.history[-1][0],
-                                            structure.positions)
+        elif rot is not None:
+            self.coupling = _rotate_block(self.coupling, rot)
         h, cp = self.hessian, self.coupling
         e, grad = evaluate(x)
         gp = grad[nc:].reshape(-1)
@@ -373,8 +376,7 @@ class WarmStartSolver:
             if t == 1.0:
                 errors.append(_max_norm(gp_new) / max(fmax, 1e-300))
             cp = cp + np.outer(miss, sv) / max(float(sv @ sv), 1e-300)
-            h = damped_bfgs(torch.as_tensor(h)[None], torch.as_tensor(s),
-                            torch.as_tensor(y))[0].numpy()
+            h = damped_bfgs(h[None], s, y)[0]
             x, e, grad, gp = x_new, e_new, grad_new, gp_new
         n_eval = counter["n"]
         min_curv = float("nan")
@@ -539,24 +541,27 @@ def _curvature_check(evaluate: Callable[[np.ndarray], tuple[float, np.ndarray]],
     for s, y in secants:
         yc, yp = y[:3 * n_cores], y[3 * n_cores:]
         cp = cp + np.outer(yc - cp @ s, s) / float(s @ s)
-        h = damped_bfgs(torch.as_tensor(h)[None], torch.as_tensor(s)[None],
-                        torch.as_tensor(yp)[None])[0].numpy()
+        h = damped_bfgs(h[None], s[None], yp[None])[0]
     return h, cp, float(theta[0]), len(secants)
 
 
 def _floored_solve(h: np.ndarray, g: np.ndarray) -> np.ndarray:
     """``H^-1 g`` with the eigenvalues of ``H`` floored at :data:`_CURVATURE_FLOOR` (eV/Å^2):
     a Cholesky solve when ``H - floor I`` is positive definite (the floor changes nothing; the
-    usual case of the damped-BFGS model), else by eigendecomposition."""
+    usual case of the damped-BFGS model), else by eigendecomposition. (LAPACK ``potrf`` /
+    ``potrs`` called directly: the same routines as ``scipy.linalg.cho_factor`` /
+    ``cho_solve`` without their checks, which cost more than the factorisation at MD sizes.)"""
     if not len(g):
         return g.copy()
-    try:
-        np.linalg.cholesky(h - _CURVATURE_FLOOR * np.eye(len(g)))
-    except np.linalg.LinAlgError:
+    _, info = _potrf(h - _CURVATURE_FLOOR * np.eye(len(g)), lower=False, clean=False)
+    if info != 0:
         w, v = np.linalg.eigh(h)
         return v @ ((v.T @ g) / np.maximum(w, _CURVATURE_FLOOR))
-    return scipy.linalg.cho_solve(scipy.linalg.cho_factor(h, check_finite=False), g,
-                                  check_finite=False)
+    factor, info = _potrf(h, lower=False, clean=False)
+    x, info_solve = _potrs(factor, g, lower=False)
+    if info or info_solve:  # (not expected: H - floor I is positive definite)
+        return scipy.linalg.solve(h, g, assume_a="pos")
+    return x
 
 
 def _max_norm(v: np.ndarray) -> float:
@@ -565,15 +570,23 @@ def _max_norm(v: np.ndarray) -> float:
     return float(np.max(np.abs(v), initial=0.0))
 
 
-def _rotate_hessian(h: np.ndarray, old: np.ndarray, new: np.ndarray) -> np.ndarray:
-    """A Hessian block ``h`` (3a, 3b) turned with the best rotation (Kabsch) of cores ``old``
-    onto ``new``: ``R H R^T`` 3x3 block by block."""
+def _kabsch(old: np.ndarray, new: np.ndarray) -> np.ndarray | None:
+    """The best rotation (Kabsch, 3x3) of the cores ``old`` onto ``new`` (``new ≈ R old``
+    about the centroids); None for fewer than three cores."""
     a = old - old.mean(0)
     b = new - new.mean(0)
     if len(a) < 3:
-        return h
+        return None
     u, _, vt = np.linalg.svd(a.T @ b)
     d = np.sign(np.linalg.det(u @ vt))
-    rot = (u @ np.diag([1.0, 1.0, d]) @ vt).T  # new ≈ R old
+    return (u @ np.diag([1.0, 1.0, d]) @ vt).T
+
+
+def _rotate_block(h: np.ndarray, rot: np.ndarray | None) -> np.ndarray:
+    """A Hessian block ``h`` (3a, 3b) turned with the rotation ``rot`` (:func:`_kabsch`):
+    ``R H R^T`` 3x3 block by block (``h`` itself when ``rot`` is None)."""
+    if rot is None:
+        return h
     rows = rot @ h.reshape(h.shape[0] // 3, 3, h.shape[1])  # R on every 3-row block
     return (rows.reshape(-1, 3) @ rot.T).reshape(h.shape)  # R^T on every 3-column block
+
