@@ -62,9 +62,9 @@ from ase import Atoms
 from ase.calculators.calculator import CalculationFailed
 from ase.md.nose_hoover_chain import NoseHooverChainNVT
 from ase.md.velocitydistribution import (
-    MaxwellBoltzmannDistribution,
     Stationary,
     ZeroRotation,
+    thermalize_momenta,
 )
 from ase.md.verlet import VelocityVerlet
 
@@ -462,7 +462,7 @@ class _Run:
             self.atoms.set_velocities(np.asarray(vel, float).reshape(-1, 3) / ase.units.fs)
         elif sig["temperature_K"]:
             rng = np.random.default_rng(sig["seed"])
-            MaxwellBoltzmannDistribution(self.atoms, temperature_K=sig["temperature_K"], rng=rng)
+            thermalize_momenta(self.atoms, sig["temperature_K"], rng=rng)
             Stationary(self.atoms)
             if len(self.atoms) > 1:
                 ZeroRotation(self.atoms)
