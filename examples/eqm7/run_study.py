@@ -379,6 +379,25 @@ def _start_geometry(study: Study, row: dict) -> tuple[np.ndarray, np.ndarray, st
     return mol.numbers.astype(int), mol.positions.astype(float), "RDKit (MMFF)"
 
 
+def bfgs_start_hessian(hessian: np.ndarray, floor: float = 0.5) -> np.ndarray:
+    """A positive definite BFGS start (eV/Å²) from a cheap-level Hessian: its eigenvalues
+    below ``floor`` (translations, rotations, soft or negative modes) raised to ``floor``."""
+    h = 0.5 * (hessian + hessian.T)
+    evals, vecs = np.linalg.eigh(h)
+    return (vecs * np.maximum(evals, floor)) @ vecs.T
+
+
+def _start_hessian(study: Study, row: dict, start: np.ndarray) -> np.ndarray | None:
+    """The prepared (cheap-level) Hessian at ``start``, if the start is the prepared geometry."""
+    prepared = study.data / "prepared" / f"{row['name']}.npz"
+    if not prepared.exists():
+        return None
+    with np.load(prepared) as d:
+        if "hessian" not in d or not np.allclose(d["positions"], start):
+            return None
+        return bfgs_start_hessian(np.asarray(d["hessian"], dtype=float))
+
+
 def harmonic_ir(hessian: np.ndarray, born: np.ndarray, numbers, positions) -> dict:
     """Frequencies (cm^-1, imaginary negative) and IR intensities (km/mol) from a Cartesian
     Hessian (eV/Å²) and dipole derivatives dmu_a/dR_ib (3, 3N; e), as
@@ -430,6 +449,9 @@ def dft_molecule(study: Study, row: dict, labeler) -> dict:
         atoms.calc = labeler_calculator(labeler)
         opt = BFGS(atoms, logfile=None, maxstep=0.1, restart=str(restart),
                    trajectory=str(traj), append_trajectory=True)
+        h0 = _start_hessian(study, row, start) if opt.state is None else None
+        if h0 is not None:  # the preparation's Hessian instead of ASE's 70 eV/Å² x identity
+            opt.H0 = h0
         converged = opt.run(fmax=float(d.get("fmax", 0.01)),
                             steps=max(0, int(d.get("max_steps", 100)) - done))
         return {"positions": atoms.positions, "converged": bool(converged),
@@ -507,8 +529,10 @@ def stage_dft(study: Study) -> dict:
     from emlpack.qm.pyscf_labeler import PySCFLabeler
 
     d = study.cfg.get("dft", {})
+    # one labeler for every small step of a molecule (BFGS, fields, Hessian displacements):
+    # each SCF starts from the density of the step before
     labeler = PySCFLabeler(d.get("level", "paper"), boys_starts=int(d.get("boys_starts", 3)),
-                           threads=d.get("threads"))
+                           threads=d.get("threads"), reuse_density=True)
     out = {}
     for row in study.test_molecules():
         target = study.dft_dir / f"{row['name']}.json"

@@ -110,6 +110,30 @@ def test_field_forces_match_finite_differences():
     assert np.abs(no_field.forces - res.forces).max() > 0.05
 
 
+def test_reused_density_gives_the_same_labels_in_fewer_cycles():
+    """``reuse_density``: a small step starts from the last density (fewer SCF cycles, labels
+    within the campaign's 1e-5 eV / 1e-4 eV/Å); other nuclei or a large move start afresh."""
+    numbers, pos = WATER
+    level = Level(basis="6-31g", conv_tol=1e-10)
+    field = np.array([0.0, 0.002, 0.0]) * FIELD_AU_IN_V_PER_A
+    reuse = PySCFLabeler(level, boys_starts=1, reuse_density=True)
+    assert reuse(numbers, pos, localize=False).ok
+    step = pos.copy()
+    step[1, 2] += 0.005
+    fresh = PySCFLabeler(level, boys_starts=1)(numbers, step, field)
+    again = reuse(numbers, step, field)
+    assert fresh.ok and again.ok
+    assert again.scf_cycles < fresh.scf_cycles, (again.scf_cycles, fresh.scf_cycles)
+    assert abs(again.energy - fresh.energy) < 1e-5
+    np.testing.assert_allclose(again.forces, fresh.forces, atol=1e-4)
+    np.testing.assert_allclose(again.dipole, fresh.dipole, atol=1e-6)
+    np.testing.assert_allclose(again.centres, fresh.centres, atol=1e-4)
+    far = pos.copy()
+    far[1, 2] += 0.3  # beyond REUSE_MAX_SHIFT: PySCF's guess, as a fresh labeler
+    assert (reuse(numbers, far, localize=False).scf_cycles
+            == PySCFLabeler(level)(numbers, far, localize=False).scf_cycles)
+
+
 def test_centres_give_the_dipole_and_cores_are_recognised():
     """Core centre on O, 4 valence pairs, and sum q r of the centres equals the SCF dipole."""
     numbers, pos = WATER

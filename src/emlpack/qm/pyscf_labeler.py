@@ -46,6 +46,8 @@ AO_CACHE_MB = 2048
 #: (1.8 GB) is built after the AO cache is filled and must still be held in memory (PySCF
 #: keeps it when it needs less than 90 % of ``max_memory`` minus the memory in use)
 MAX_MEMORY_MB = 8000
+#: largest nuclear displacement (Å) for which ``reuse_density`` starts from the last density
+REUSE_MAX_SHIFT = 0.15
 
 
 class LabelingError(EmlpackError, RuntimeError):
@@ -331,6 +333,10 @@ class PySCFLabeler:
         fast_xc_gradient: XC part of the forces by :func:`xc_nuclear_gradient` (GGA and
             hybrid GGA; others use PySCF's).
         reuse_heap: label inside :func:`reused_heap` (glibc keeps freed memory during a label).
+        reuse_density: start each SCF from the last converged density matrix of this labeler
+            when the nuclei are the same and none moved more than ``REUSE_MAX_SHIFT`` Å (a
+            series of small steps: optimisation, finite fields, finite-difference Hessians);
+            otherwise from PySCF's default guess. The converged result is the same.
     """
 
     def __init__(
@@ -345,6 +351,7 @@ class PySCFLabeler:
         max_memory_mb: float | None = MAX_MEMORY_MB,
         fast_xc_gradient: bool = True,
         reuse_heap: bool = True,
+        reuse_density: bool = False,
     ) -> None:
         self.level = parse_level(level)
         self.boys_starts = max(1, int(boys_starts))
@@ -356,6 +363,8 @@ class PySCFLabeler:
         self.max_memory_mb = max_memory_mb
         self.fast_xc_gradient = bool(fast_xc_gradient)
         self.reuse_heap = bool(reuse_heap)
+        self.reuse_density = bool(reuse_density)
+        self._density: tuple | None = None  # (numbers, charge, positions Å, density matrix)
 
     # ------------------------------------------------------------------ public
     def __call__(self, numbers, positions, field=(0.0, 0.0, 0.0), charge: float = 0.0,
@@ -455,8 +464,19 @@ class PySCFLabeler:
             if clear is not None:
                 clear()  # free the AO cache now, not when the SCF object is collected
 
+    def _initial_density(self, res: LabelResult) -> np.ndarray | None:
+        """The last converged density when ``reuse_density`` and the nuclei barely moved."""
+        if not self.reuse_density or self._density is None:
+            return None
+        numbers, charge, positions, dm = self._density
+        if (charge != res.charge or numbers.shape != res.numbers.shape
+                or np.any(numbers != res.numbers)
+                or np.abs(positions - res.positions).max() > REUSE_MAX_SHIFT):
+            return None
+        return dm
+
     def _solve(self, res: LabelResult, mol, mf, field_au, forces: bool, localize: bool) -> None:
-        energy = mf.kernel()
+        energy = mf.kernel(dm0=self._initial_density(res))
         cycles = int(getattr(mf, "cycles", 0) or 0)
         if not mf.converged:
             mf2 = mf.newton()
@@ -468,6 +488,9 @@ class PySCFLabeler:
                 )
             mf = mf2
         res.scf_cycles = cycles
+        if self.reuse_density:
+            self._density = (res.numbers.copy(), res.charge, res.positions.copy(),
+                             mf.make_rdm1())
         clear = getattr(mf._numint, "clear", None)
         if clear is not None:
             clear()  # the AO cache is for the SCF; the gradient needs second derivatives
