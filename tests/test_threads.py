@@ -2,9 +2,17 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
-from emlpack.threads import configure_thread_environment, default_threads
+from emlpack.threads import (
+    configure_openblas_coretype,
+    configure_thread_environment,
+    default_threads,
+)
 
 
 def test_defaults_are_passive_and_bounded():
@@ -24,3 +32,42 @@ def test_user_settings_win_and_explicit_threads_override():
     assert env["OMP_NUM_THREADS"] == "1"
     with pytest.raises(ValueError, match="threads"):
         configure_thread_environment(0, environ=env)
+
+
+def test_openblas_coretype_only_for_avx2_cpus_and_never_over_the_user(tmp_path):
+    cpu = tmp_path / "cpuinfo"
+    cpu.write_text("processor : 0\nflags : fpu sse4_2 avx fma avx2 avx512f\n")
+    env: dict = {}
+    assert configure_openblas_coretype(env, str(cpu)) == "Haswell"
+    assert env == {"OPENBLAS_CORETYPE": "Haswell"}
+    user = {"OPENBLAS_CORETYPE": "Zen"}
+    assert configure_openblas_coretype(user, str(cpu)) == "Zen"
+    assert user["OPENBLAS_CORETYPE"] == "Zen"
+    cpu.write_text("flags : fpu sse4_2 avx\n")
+    env = {}
+    assert configure_openblas_coretype(env, str(cpu)) is None and env == {}
+    assert configure_openblas_coretype({}, str(tmp_path / "missing")) is None
+
+
+def test_pyscf_openblas_runs_the_requested_kernels():
+    """A labeler, made before PySCF is imported, gets PySCF's bundled OpenBLAS the AVX2
+    kernels (it reports its core by ``openblas_get_corename``) on an AVX2 CPU."""
+    pytest.importorskip("pyscf")
+    code = """
+import ctypes, glob, os
+from emlpack.qm.pyscf_labeler import PySCFLabeler
+PySCFLabeler("tiny")
+import pyscf.lib
+libs = glob.glob(os.path.join(os.path.dirname(pyscf.lib.__file__), "libopenblas*.so*"))
+name = ctypes.CDLL(libs[0]).openblas_get_corename if libs else None
+if name is not None:
+    name.restype = ctypes.c_char_p
+print(os.environ.get("OPENBLAS_CORETYPE"), name().decode() if name else "no-bundled-openblas")
+"""
+    env = {k: v for k, v in __import__("os").environ.items() if k != "OPENBLAS_CORETYPE"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                         cwd=Path(__file__).resolve().parents[1], check=True).stdout.split()
+    if out[1] == "no-bundled-openblas":
+        pytest.skip("this PySCF build has no bundled OpenBLAS")
+    if out[0] == "Haswell":
+        assert out[1].lower() == "haswell", out

@@ -81,6 +81,9 @@ def guess_matched(numbers, positions, reference: np.ndarray, charge: float = 0.0
 
 
 def _have_pyscf() -> bool:
+    from emlpack.threads import configure_openblas_coretype
+
+    configure_openblas_coretype()  # before PySCF loads its OpenBLAS
     try:
         import pyscf  # noqa: F401
     except ImportError:

@@ -34,6 +34,7 @@ from emlpack.errors import EmlpackError
 from emlpack.io.cores import find_core_centres
 from emlpack.qm.levels import Level, parse_level
 from emlpack.structure import Structure, StructureError
+from emlpack.threads import configure_openblas_coretype
 from emlpack.units import ANGSTROM_IN_BOHR, BOHR, FIELD_AU_IN_V_PER_A, HARTREE
 
 #: spreads (bohr^2) of two Boys starts closer than this count as the same minimum
@@ -364,6 +365,7 @@ class PySCFLabeler:
         self.fast_xc_gradient = bool(fast_xc_gradient)
         self.reuse_heap = bool(reuse_heap)
         self.reuse_density = bool(reuse_density)
+        configure_openblas_coretype()  # before PySCF (imported when labeling) loads OpenBLAS
         self._density: tuple | None = None  # (numbers, charge, positions Å, density matrix)
 
     # ------------------------------------------------------------------ public
