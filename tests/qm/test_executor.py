@@ -42,6 +42,12 @@ def test_errors_reach_the_caller_and_map_keeps_order():
         assert list(ex.map_ordered(_square, [3, 1, 2])) == [9, 1, 4]
 
 
+def _malloc_arena_max():
+    import os
+
+    return os.environ.get("MALLOC_ARENA_MAX")
+
+
 def test_dask_local_cluster():
     with Executor(workers=1) as ex:
         assert ex.uses_dask and ex.threads_per_task >= 1
@@ -56,3 +62,6 @@ def test_dask_local_cluster():
                 results[tag] = str(exc)
         assert results == {1: 1, 2: 4, 3: 9, -2: "negative -2"}
         assert list(ex.map_ordered(_square, [4, 5])) == [16, 25]
+        # one malloc arena in the worker processes (set before they start; see Executor)
+        ex.submit(_malloc_arena_max, tag="arena")
+        assert [f.result() for _, f in ex.completed()] == ["1"]
