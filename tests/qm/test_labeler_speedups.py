@@ -104,3 +104,36 @@ def test_fast_settings_match_plain_pyscf_at_paper_level():
     d_e, d_f, d_c = _differences(plain, fast)
     print(f"ethanol paper level: |dE| {d_e:.1e} eV, |dF| {d_f:.1e} eV/Å, centres {d_c:.1e} Å")
     assert d_e < TOL_E and d_f < TOL_F and d_c < TOL_C, (d_e, d_f, d_c)
+
+
+_HEAP_PROBE = """
+import resource, sys
+import numpy as np
+from emlpack.qm.pyscf_labeler import reused_heap
+keep = sys.argv[1] == "keep"
+faults = []
+for _ in range(2):
+    f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    with reused_heap(keep=keep):
+        a = np.ones(25_000_000)  # 200 MB
+        del a
+    faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)
+print(*faults)
+"""
+
+
+@pytest.mark.parametrize("keep", ["keep", "release"])
+def test_kept_heap_serves_the_next_block_without_page_faults(keep):
+    """``reused_heap(keep=True)`` (labeling workers): the second block reuses the pages the
+    first touched; by default the memory goes back to the kernel and is touched again."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _HEAP_PROBE, keep], capture_output=True,
+                         text=True, check=True).stdout.split()
+    first, second = int(out[0]), int(out[1])
+    assert first > 50, out  # 200 MB touched (4 kB or 2 MB pages)
+    if keep == "keep":
+        assert second < 0.1 * first, out
+    else:
+        assert second > 0.5 * first, out

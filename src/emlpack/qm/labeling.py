@@ -234,7 +234,12 @@ def prepare_task(source, level: str, optimize: bool, fmax: float, seed: int,
 def label_task(config: Configuration, level: str, boys_starts: int, seed: int,
                threads: int | None = None):
     """Label one configuration (runs on a worker); returns (config, LabelResult)."""
-    labeler = PySCFLabeler(level, boys_starts=boys_starts, seed=seed, threads=threads)
+    import multiprocessing
+
+    # a worker process (Dask's) only labels: it keeps its memory for the next label
+    worker = multiprocessing.parent_process() is not None
+    labeler = PySCFLabeler(level, boys_starts=boys_starts, seed=seed, threads=threads,
+                           keep_heap=worker)
     return config, labeler(config.numbers, config.positions, config.field, config.charge)
 
 
