@@ -81,3 +81,22 @@ def test_warm_start_core_forces_are_the_models(water):
         assert atoms.get_potential_energy() == pytest.approx(out["energy"], abs=1e-10)
         assert np.abs(out["pair_forces"]).max() < 1e-7
     assert len(solver.history) == 4
+
+
+@pytest.mark.parametrize("method", ["corrected", "warm"])
+def test_first_residual_is_the_pair_force_at_the_predicted_pairs(water, method):
+    """``diagnostics["first_residual"]`` (the predictor's error, eV/Å) is the largest pair-force
+    component of the model at the pairs :meth:`WarmStartSolver.predict` gives for the new cores,
+    before any relaxation step."""
+    model, s = water
+    solver = WarmStartSolver(method, fmax=1e-8)
+    rng = np.random.default_rng(1)
+    velocity = rng.normal(scale=0.002, size=s.positions.shape)
+    for k in range(5):
+        moved = s.copy(positions=s.positions + k * velocity, pairs=s.pairs)
+        predicted = solver.predict(moved.positions) if solver.history else None
+        solver.relax(model, moved)
+    out = model.evaluate(moved.copy(pairs=predicted), dtype=torch.float64)
+    residual = np.abs(out["pair_forces"]).max()
+    assert solver.diagnostics["first_residual"] == pytest.approx(residual, rel=1e-9)
+    assert solver.diagnostics["first_residual"] > solver.diagnostics["max_force"]

@@ -284,6 +284,8 @@ class WarmStartSolver:
             "min_curvature": min_curv,
             "reason": reason,
             "start": start,
+            # largest pair-force component at the start pairs (eV/Å): the predictor's error
+            "first_residual": out.get("first_residual", float("nan")),
         }
         if finite:
             self.history = (self.history + [(cores, pairs.copy())])[-self.n_history:]
@@ -337,7 +339,7 @@ class WarmStartSolver:
         iterations = 0
         #: relative model errors measured in this step (Newton contraction, coupling secant)
         errors: list[float] = []
-        estimate = _max_norm(gp)
+        estimate = first_residual = _max_norm(gp)
         for _ in range(self.max_iterations):
             fmax = _max_norm(gp)
             step = -_floored_solve(h, gp)
@@ -406,7 +408,8 @@ class WarmStartSolver:
         return {"pairs": x, "energy": e, "forces": -gc.reshape(-1, 3), "converged": converged,
                 "n_evaluations": n_eval, "n_hessians": n_hess, "iterations": iterations,
                 "max_force": estimate if self.correct else raw, "pair_forces": pair_forces,
-                "min_curvature": min_curv, "curvature_products": n_products}
+                "min_curvature": min_curv, "curvature_products": n_products,
+                "first_residual": first_residual}
 
 
 class BoxedLBFGSB(WarmStartSolver):
