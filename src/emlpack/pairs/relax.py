@@ -503,11 +503,23 @@ def _newton_step(prob, hessian, gp, held, floor, active, alpha, max_step):
     reduced = hessian[idx] * free[:, :, None] * free[:, None, :] + torch.diag_embed(
         held[idx].to(dtype)
     )
-    evals, evecs = torch.linalg.eigh(reduced)
-    shift = torch.clamp(floor - evals[:, :1], min=0.0)
-    coef = (evecs.transpose(1, 2) @ gp[idx][:, :, None]).squeeze(-1) / (evals + shift)
+    rhs = gp[idx][:, :, None]
+    # models with every curvature above the floor need no shift: a Cholesky solve (the
+    # factorisation of model - floor proves it) instead of an eigendecomposition (measured on
+    # the relaxation benchmark: 86 % of the solves, step CPU 67-80 -> 36-47 ms per relaxation)
+    eye = torch.eye(reduced.shape[1], dtype=dtype)
+    _, info = torch.linalg.cholesky_ex(reduced - floor * eye)
+    chol, info_model = torch.linalg.cholesky_ex(reduced)
+    plain = (info == 0) & (info_model == 0)
+    sol = torch.cholesky_solve(rhs, torch.where(plain[:, None, None], chol, eye)).squeeze(-1)
+    if not bool(plain.all()):
+        rest = torch.nonzero(~plain).squeeze(1)
+        evals, evecs = torch.linalg.eigh(reduced[rest])
+        shift = torch.clamp(floor - evals[:, :1], min=0.0)
+        coef = (evecs.transpose(1, 2) @ rhs[rest]).squeeze(-1) / (evals + shift)
+        sol[rest] = (evecs @ coef[:, :, None]).squeeze(-1)
     full = gp.new_zeros(gp.shape)
-    full[idx] = (evecs @ coef[:, :, None]).squeeze(-1)
+    full[idx] = sol
     step = -prob.unpad(full)
     longest = prob.per_structure_max_norm(step)
     scale = torch.clamp(max_step / torch.clamp(longest, min=1e-300), max=1.0)
