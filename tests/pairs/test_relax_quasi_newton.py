@@ -12,7 +12,7 @@ import torch
 from emlpack.io import read_structures
 from emlpack.nn.checkpoint import load_model as load_checkpoint
 from emlpack.nn.electrostatics import coulomb_molecular, ewald_reciprocal
-from emlpack.pairs.relax import _CoulombPairs, _PairProblem, relax_pairs
+from emlpack.pairs.relax import _BondRotations, _CoulombPairs, _PairProblem, relax_pairs
 from tests.conftest import shared_path
 from tests.legacy.test_reference_fixtures import load_model
 
@@ -107,6 +107,46 @@ def test_float32_start_reaches_the_float64_minima(trained):
         assert not a.failed, a.reason
         assert a.max_force < 1e-6
         assert a.energy == pytest.approx(b.energy, abs=1e-6)
+
+
+def test_bond_rotation_steps():
+    """A tangential step turns a pair about the axis through its two nearest cores (both
+    distances kept); a small step differs from the straight step by O(|s|^2 / rho); pairs near
+    the axis and crystals take the straight step."""
+    from emlpack.structure import Structure
+
+    cores = np.array([[0.0, 0.0, 0.0], [1.2, 0.0, 0.0], [5.0, 0.0, 0.0], [9.0, 0.0, 0.0]])
+    far = [[7.0, 3.0 * k, 0.0] for k in (1, 2, 3)]
+    pairs = np.array([[0.6, 0.35, 0.0], [0.6, 0.05, 0.0]] + far)
+    mol = Structure(np.array([6, 6, 1, 1]), cores, pairs)
+    x = torch.as_tensor(pairs)
+    turn = _BondRotations([mol], x)
+    tangential = torch.zeros_like(x)
+    tangential[:2, 2] = 0.1
+    new = turn(x, tangential).numpy()
+    for c in cores[:2]:
+        assert np.linalg.norm(new[0] - c) == pytest.approx(np.linalg.norm(pairs[0] - c), abs=1e-12)
+    assert np.allclose(new[1], pairs[1] + tangential[1].numpy(), atol=1e-15)  # rho < 0.2 Å
+    small_step = torch.zeros_like(x)
+    small_step[0] = torch.tensor([1e-4, -2e-4, 3e-4])
+    assert torch.abs(turn(x, small_step) - (x + small_step)).max() < 1e-6  # |s|^2 / rho
+    crystal = Structure(np.array([6, 6, 1, 1]), cores, pairs, cell=12.0 * np.eye(3), pbc=True)
+    straight = _BondRotations([crystal], x)(x, tangential)
+    assert torch.equal(straight, x + tangential)
+
+
+def test_bond_rotations_reach_the_straight_step_minima(trained):
+    """Acetylene (the benchmark's slow soft rotation of the triple-bond pairs) and the other
+    molecules: the same minima with and without bond-rotation steps, energies within 1e-8 eV
+    at fmax 1e-6."""
+    starts = _starts("::75")
+    turned = relax_pairs(trained, starts, fmax=1e-6, check_curvature=False)
+    straight = relax_pairs(trained, starts, fmax=1e-6, check_curvature=False,
+                           bond_rotations=False)
+    for a, b in zip(turned, straight, strict=True):
+        assert not a.failed, a.reason
+        assert a.max_force < 1e-6
+        assert a.energy == pytest.approx(b.energy, abs=1e-8)
 
 
 def test_exact_newton_finish_converges_what_the_quasi_newton_left(trained):
