@@ -8,6 +8,12 @@ label differences to the first variant and to the stored labels (centres matched
 Variants: ``plain`` (PySCF as it comes: no AO cache, PySCF's max_memory, PySCF's XC gradient,
 glibc's malloc), ``new`` (the labeler's defaults), ``new_atom_guess``, ``new_no_conv_check``.
 
+OpenBLAS's kernels are chosen when PySCF loads, so they cannot change within a process:
+compare them in two runs, e.g. ``OPENBLAS_CORETYPE=Prescott`` (what PySCF's OpenBLAS 0.3.3
+picks on our AMD EPYC) against the default (Haswell, ``emlpack.threads``); the JSON records
+the kernels in use (``openblas_core``). ``new_keep_heap`` keeps the heap between labels, as
+the labeling workers do.
+
 Usage (a 7-atom and a 12-atom configuration of the campaign's first shard)::
 
     OMP_NUM_THREADS=1 PYTHONPATH=src python benchmarks/labeler_speed.py \\
@@ -54,6 +60,7 @@ VARIANTS = {
     "new": {},
     "new_atom_guess": {"scf_settings": {"init_guess": "atom"}},
     "new_no_conv_check": {"scf_settings": {"conv_check": False}},
+    "new_keep_heap": {"keep_heap": True},
 }
 
 
@@ -100,7 +107,10 @@ def main() -> None:
     args = parser.parse_args()
     rows = run(args.store, args.index, args.variants.split(","))
     if args.json:
-        write_json(args.json, {"machine": machine_info(), "rows": rows})
+        from emlpack.threads import pyscf_openblas_core
+
+        write_json(args.json, {"machine": machine_info(), "openblas_core": pyscf_openblas_core(),
+                               "rows": rows})
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -54,17 +55,13 @@ def test_pyscf_openblas_runs_the_requested_kernels():
     kernels (it reports its core by ``openblas_get_corename``) on an AVX2 CPU."""
     pytest.importorskip("pyscf")
     code = """
-import ctypes, glob, os
+import os
 from emlpack.qm.pyscf_labeler import PySCFLabeler
+from emlpack.threads import pyscf_openblas_core
 PySCFLabeler("tiny")
-import pyscf.lib
-libs = glob.glob(os.path.join(os.path.dirname(pyscf.lib.__file__), "libopenblas*.so*"))
-name = ctypes.CDLL(libs[0]).openblas_get_corename if libs else None
-if name is not None:
-    name.restype = ctypes.c_char_p
-print(os.environ.get("OPENBLAS_CORETYPE"), name().decode() if name else "no-bundled-openblas")
+print(os.environ.get("OPENBLAS_CORETYPE"), pyscf_openblas_core() or "no-bundled-openblas")
 """
-    env = {k: v for k, v in __import__("os").environ.items() if k != "OPENBLAS_CORETYPE"}
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_CORETYPE"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
                          cwd=Path(__file__).resolve().parents[1], check=True).stdout.split()
     if out[1] == "no-bundled-openblas":

@@ -76,6 +76,25 @@ def configure_openblas_coretype(environ=None, cpuinfo: str = "/proc/cpuinfo") ->
     return None
 
 
+def pyscf_openblas_core() -> str | None:
+    """The core type (kernels) of the OpenBLAS bundled with PySCF, e.g. ``"Haswell"``, as it
+    reports it (``openblas_get_corename``); ``None`` without PySCF or a bundled OpenBLAS.
+    Imports PySCF: call :func:`configure_openblas_coretype` first."""
+    import ctypes
+    import glob
+
+    try:
+        import pyscf.lib
+    except ImportError:
+        return None
+    libs = glob.glob(os.path.join(os.path.dirname(pyscf.lib.__file__), "libopenblas*.so*"))
+    if not libs:
+        return None
+    corename = ctypes.CDLL(libs[0]).openblas_get_corename
+    corename.restype = ctypes.c_char_p
+    return corename().decode()
+
+
 def apply_threads(threads: int | None = None) -> int:
     """Set torch's intra-op threads (``threads``, else ``OMP_NUM_THREADS``, else the default)
     and return the number set."""
