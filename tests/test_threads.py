@@ -1,4 +1,5 @@
-"""Thread policy: passive OpenMP waiting by default, the user's settings win."""
+"""Thread and BLAS policy: passive OpenMP waiting by default, AVX2 kernels for PySCF's OpenBLAS, the
+user's settings win."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from emlpack.threads import (
     configure_thread_environment,
     default_threads,
 )
+from tests.conftest import require
 
 
 def test_defaults_are_passive_and_bounded():
@@ -53,7 +55,7 @@ def test_openblas_coretype_only_for_avx2_cpus_and_never_over_the_user(tmp_path):
 def test_pyscf_openblas_runs_the_requested_kernels():
     """A labeler, made before PySCF is imported, gets PySCF's bundled OpenBLAS the AVX2
     kernels (it reports its core by ``openblas_get_corename``) on an AVX2 CPU."""
-    pytest.importorskip("pyscf")
+    require("pyscf")
     code = """
 import os
 from emlpack.qm.pyscf_labeler import PySCFLabeler
