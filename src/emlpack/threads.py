@@ -1,4 +1,5 @@
-"""Thread settings that stay fast on a shared machine (torch-free; call before importing torch).
+"""Thread and BLAS settings that stay fast on a shared machine (torch-free; call before
+importing torch, or PySCF for the OpenBLAS kernels: :func:`configure_openblas_coretype`).
 
 OpenMP's default wait policy lets idle threads spin; on a machine whose cores are busy with
 other work, every parallel region then waits for spinning threads that have been descheduled.

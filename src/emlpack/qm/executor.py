@@ -64,8 +64,8 @@ class Executor:
 
                 # one malloc arena per worker: tasks run in a worker thread, whose own arena
                 # returns freed memory to the kernel, so PySCF's arrays page-fault in again
-                # (aziridine at the paper level in a thread: 36 600 -> 5 200 minor faults,
-                # 20.7 -> 16.8 s CPU); glibc reads it at process start
+                # (2nd aziridine label at the paper level in a worker: 49 700 -> 5 400 minor
+                # faults, 21.4 -> 17.4 s CPU); glibc reads it at process start
                 with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_ARENA_MAX": 1}):
                     cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1,
                                            processes=True, dashboard_address=":0",
