@@ -154,8 +154,8 @@ class RelaxOptions:
     min_pair_distance: float = MIN_PAIR_DISTANCE
     max_core_distance: float = MAX_CORE_DISTANCE
     check_curvature: bool = True
-    #: "coulomb": steps in cylindrical coordinates about the axis through each pair's two
-    #: nearest cores (molecules; see :class:`_BondRotations`) instead of straight ones
+    #: (method "coulomb", molecules) steps in cylindrical coordinates about the axis through
+    #: each pair's two nearest cores (:class:`_BondRotations`) instead of straight ones
     #: (measured on the 64-structure benchmark: acetylene's slowest 58 -> 40 evaluations)
     bond_rotations: bool = True
 
