@@ -100,3 +100,22 @@ def test_first_residual_is_the_pair_force_at_the_predicted_pairs(water, method):
     residual = np.abs(out["pair_forces"]).max()
     assert solver.diagnostics["first_residual"] == pytest.approx(residual, rel=1e-9)
     assert solver.diagnostics["first_residual"] > solver.diagnostics["max_force"]
+
+
+def test_corrected_pairs_meet_fmax_when_evaluated(water):
+    """``"corrected"`` returns pairs moved by a final Newton step it does not evaluate; its stop
+    rule (estimate below ``CORRECTED_MARGIN`` x fmax) must still leave the model's pair force
+    at the returned pairs below fmax, step after step of a smooth trajectory."""
+    model, s = water
+    fmax = 1e-5
+    solver = WarmStartSolver("corrected", fmax=fmax)
+    rng = np.random.default_rng(2)
+    velocity = rng.normal(scale=0.004, size=s.positions.shape)
+    worst = 0.0
+    for k in range(20):
+        moved = s.copy(positions=s.positions + k * velocity + 0.01 * np.sin(0.5 * k), pairs=s.pairs)
+        r = solver.relax(model, moved)
+        assert r.converged, r.reason
+        out = model.evaluate(moved.copy(pairs=r.pairs), dtype=torch.float64)
+        worst = max(worst, float(np.abs(out["pair_forces"]).max()))
+    assert worst < fmax, worst
