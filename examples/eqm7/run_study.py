@@ -376,10 +376,14 @@ def _start_geometry(study: Study, row: dict) -> tuple[np.ndarray, np.ndarray, st
                 f"prepared ({d['level']})"
 
     def prepare():
-        from emlpack.qm.campaign import load_settings
+        from emlpack.data.store import StoreError
+        from emlpack.qm.campaign import campaign_recipe, load_settings
         from emlpack.qm.labeling import prepare_task
 
-        prep = load_settings(study.data)["recipe"]["prepare"]
+        try:
+            prep = load_settings(study.data)["recipe"]["prepare"]
+        except StoreError:  # a data set not made by `emlp campaign`: its default preparation
+            prep = campaign_recipe()["prepare"]
         mol = prepare_task((row["name"], row["smiles"]), prep["level"], optimize=True,
                            fmax=float(prep["fmax"]), seed=0, hessian=False)
         return {"numbers": mol.numbers, "positions": mol.positions,

@@ -110,6 +110,10 @@ def test_every_stage_writes_its_outputs(study_run):
             assert (work / "md" / name / "methane" / "trajectory.xyz").exists()
     dft = json.loads((root / "data" / "references" / "pbe0_sto-3g" / "methane.json").read_text())
     assert dft["level"] == "pbe0/sto-3g"
+    # no campaign preparation in this data set: the start is prepared here (GFN2-xTB)
+    assert dft["start_geometry"] == "prepared for the reference (gfn2-xtb)"
+    assert (root / "data" / "references" / "pbe0_sto-3g" / "methane" / "start.npz").exists()
+    assert dft["optimisation"]["converged"]
     alpha = np.array(dft["polarizability_bohr3"])
     assert np.all(np.linalg.eigvalsh(alpha) > 0)  # a positive polarizability (sign convention)
     freqs = np.array(dft["frequencies_cm-1"])
