@@ -433,12 +433,14 @@ def harmonic_ir(hessian: np.ndarray, born: np.ndarray, numbers, positions) -> di
     return {"frequencies": freqs, "intensities": IR_KM_PER_MOL_PER_E2_AMU * (dmu_dq**2).sum(0)}
 
 
-def dft_molecule(study: Study, row: dict, labeler) -> dict:
-    """DFT reference of one molecule; every sub-step cached under WORKDIR/dft/NAME/."""
+def dft_static(study: Study, row: dict, labeler) -> dict:
+    """Static DFT reference of one molecule (``NAME.json``): BFGS optimum, energy, Boys centres,
+    dipole, polarizability and Born charges from central finite fields; every sub-step cached
+    under DFT_DIR/NAME/."""
     from ase import Atoms
     from ase.optimize import BFGS
 
-    from emlpack.qm.labeling import finite_difference_hessian, labeler_calculator, pyscf_hessian
+    from emlpack.qm.labeling import labeler_calculator
     from emlpack.units import COULOMB_EV_A, FIELD_AU_IN_V_PER_A, POLARIZABILITY_A3_IN_BOHR3
 
     d = study.cfg.get("dft", {})
@@ -506,6 +508,35 @@ def dft_molecule(study: Study, row: dict, labeler) -> dict:
     alpha = ((dip[:, 0] - dip[:, 1]) / (2 * f_v)).T
     alpha = 0.5 * (alpha + alpha.T)
     born = ((frc[:, 0] - frc[:, 1]) / (2 * f_v)).reshape(3, -1)
+    to_bohr3 = COULOMB_EV_A * POLARIZABILITY_A3_IN_BOHR3
+    return {
+        "name": row["name"], "smiles": row["smiles"], "level": labeler.level.name,
+        "start_geometry": origin, "numbers": numbers.tolist(), "positions": pos.tolist(),
+        "optimisation": {"converged": bool(opt["converged"]), "steps": int(opt["steps"]),
+                         "max_force": float(opt["max_force"]),
+                         "fmax": float(d.get("fmax", 0.01))},
+        "energy": float(g["energy"]), "max_force_at_optimum": float(np.abs(g["forces"]).max()),
+        "pairs": g["pairs"].tolist(), "dipole_e_A": g["dipole"].tolist(),
+        "field_step_au": f_au,
+        "polarizability_bohr3": (alpha * to_bohr3).tolist(),
+        "polarizability_isotropic_bohr3": float(np.trace(alpha) * to_bohr3 / 3),
+        "born_charges_e": born.tolist(),
+        "wall_s_this_call": time.perf_counter() - t0,
+    }
+
+
+def dft_vibrations(study: Study, static: dict, labeler) -> dict:
+    """Harmonic reference of one molecule at its static reference's optimum (``NAME.ir.json``):
+    Hessian (central differences of the forces, resumable per displacement in DFT_DIR/NAME/vib/,
+    or PySCF's analytic one), frequencies and IR intensities with the static Born charges."""
+    from ase import Atoms
+
+    from emlpack.qm.labeling import finite_difference_hessian, labeler_calculator, pyscf_hessian
+
+    d = study.cfg.get("dft", {})
+    cache = study.dft_dir / static["name"]
+    numbers, pos = np.array(static["numbers"]), np.array(static["positions"])
+    t0 = time.perf_counter()
     method = str(d.get("hessian", "finite-difference"))
     if method not in ("finite-difference", "analytic"):
         raise ValueError(f"dft.hessian: 'finite-difference' or 'analytic', got {method!r}")
@@ -521,20 +552,9 @@ def dft_molecule(study: Study, row: dict, labeler) -> dict:
 
     h = _cached(cache / "hessian.npz", hessian)
     hess = h["hessian"]
-    ir = harmonic_ir(hess, born, numbers, pos)
-    to_bohr3 = COULOMB_EV_A * POLARIZABILITY_A3_IN_BOHR3
+    ir = harmonic_ir(hess, np.array(static["born_charges_e"]), numbers, pos)
     return {
-        "name": row["name"], "smiles": row["smiles"], "level": labeler.level.name,
-        "start_geometry": origin, "numbers": numbers.tolist(), "positions": pos.tolist(),
-        "optimisation": {"converged": bool(opt["converged"]), "steps": int(opt["steps"]),
-                         "max_force": float(opt["max_force"]),
-                         "fmax": float(d.get("fmax", 0.01))},
-        "energy": float(g["energy"]), "max_force_at_optimum": float(np.abs(g["forces"]).max()),
-        "pairs": g["pairs"].tolist(), "dipole_e_A": g["dipole"].tolist(),
-        "field_step_au": f_au,
-        "polarizability_bohr3": (alpha * to_bohr3).tolist(),
-        "polarizability_isotropic_bohr3": float(np.trace(alpha) * to_bohr3 / 3),
-        "born_charges_e": born.tolist(), "hessian_eV_A2": hess.tolist(),
+        "name": static["name"], "level": static["level"], "hessian_eV_A2": hess.tolist(),
         "hessian_method": str(h["method"]) if "method" in h else "analytic",
         "frequencies_cm-1": ir["frequencies"].tolist(),
         "intensities_km_per_mol": ir["intensities"].tolist(),
@@ -542,7 +562,19 @@ def dft_molecule(study: Study, row: dict, labeler) -> dict:
     }
 
 
+def dft_plan(rows: list[dict], figure: list[str]) -> list[tuple[dict, str]]:
+    """(molecule, part) in the order the dft stage computes them: the IR figure's molecules
+    completely, then every other molecule's ``static`` reference, then their ``ir`` ones."""
+    first = [r for r in rows if r["name"] in set(figure)]
+    rest = [r for r in rows if r["name"] not in set(figure)]
+    return ([(r, part) for r in first for part in ("static", "ir")]
+            + [(r, "static") for r in rest] + [(r, "ir") for r in rest])
+
+
 def stage_dft(study: Study) -> dict:
+    """The DFT references in the order that gives results soonest: the IR figure's molecules
+    completely (``NAME.json`` then ``NAME.ir.json``), then every other molecule's static
+    reference (polarizabilities), then their Hessians (hours each)."""
     from emlpack.qm.pyscf_labeler import PySCFLabeler
 
     d = study.cfg.get("dft", {})
@@ -550,38 +582,49 @@ def stage_dft(study: Study) -> dict:
     # each SCF starts from the density of the step before
     labeler = PySCFLabeler(d.get("level", "paper"), boys_starts=int(d.get("boys_starts", 3)),
                            threads=d.get("threads"), reuse_density=True)
-    out = {}
-    for row in study.test_molecules():
-        target = study.dft_dir / f"{row['name']}.json"
-        if target.exists():
-            study.log(f"dft: {row['name']} exists, skipped")
+    figure = study.cfg.get("ir", {}).get("figure_molecules", list(IR_MOLECULES))
+    out: dict = {}
+    for row, part in dft_plan(study.test_molecules(), figure):
+        name = row["name"]
+        target = study.dft_dir / (f"{name}.json" if part == "static" else f"{name}.ir.json")
+        failed = study.dft_dir / f"{name}.failed.json"
+        if target.exists() or (part == "ir" and "frequencies_cm-1"
+                               in (_read_json(study.dft_dir / f"{name}.json") or {})):
+            study.log(f"dft: {name} {part} exists, skipped")
             continue
-        if _read_json(target.with_suffix(".failed.json")):
-            study.log(f"dft: {row['name']} failed before (see {target.stem}.failed.json),"
-                      " skipped; delete that file to retry")
+        if _read_json(failed):
+            study.log(f"dft: {name} failed before (see {failed.name}), skipped; delete that"
+                      " file to retry")
             continue
-        study.log(f"dft: {row['name']} ({row['smiles']}) at {labeler.level.name}")
+        static = _read_json(study.dft_dir / f"{name}.json")
+        if part == "ir" and static is None:
+            continue  # its static reference failed
+        study.log(f"dft: {name} ({row['smiles']}) {part} at {labeler.level.name}")
         try:
-            res = dft_molecule(study, row, labeler)
+            res = (dft_static(study, row, labeler) if part == "static"
+                   else dft_vibrations(study, static, labeler))
         except Exception as exc:  # noqa: BLE001 - one molecule must not stop the stage
-            _write_json(target.with_suffix(".failed.json"),
-                        {"name": row["name"], "error": f"{type(exc).__name__}: {exc}"})
-            study.log(f"dft: {row['name']} FAILED: {exc}")
+            _write_json(failed, {"name": name, "part": part,
+                                 "error": f"{type(exc).__name__}: {exc}"})
+            study.log(f"dft: {name} {part} FAILED: {exc}")
             continue
         _write_json(target, res)
         study.work["dft"] += 1
-        out[row["name"]] = res
-        study.log(f"dft: {row['name']}: alpha_iso {res['polarizability_isotropic_bohr3']:.2f}"
-                  f" bohr³, {res['wall_s_this_call']:.0f} s")
+        out.setdefault(name, {}).update(res)
+        what = (f"alpha_iso {res['polarizability_isotropic_bohr3']:.2f} bohr³" if part == "static"
+                else f"{len(res['frequencies_cm-1'])} modes")
+        study.log(f"dft: {name} {part}: {what}, {res['wall_s_this_call']:.0f} s")
     return out
 
 
 def dft_results(study: Study) -> dict[str, dict]:
-    """The finished DFT references of the test molecules, by name."""
+    """The finished DFT references of the test molecules, by name: the static reference
+    (``NAME.json``) with the harmonic one (``NAME.ir.json``) merged in when it is finished."""
     out = {}
     for row in study.test_molecules():
         r = _read_json(study.dft_dir / f"{row['name']}.json")
         if r is not None:
+            r.update(_read_json(study.dft_dir / f"{row['name']}.ir.json") or {})
             out[row["name"]] = r
     return out
 
@@ -737,7 +780,7 @@ def _freq_mae(a, b) -> float | None:
 
 
 def ir_summary(study: Study) -> dict | None:
-    refs = dft_results(study)
+    refs = {m: r for m, r in dft_results(study).items() if "frequencies_cm-1" in r}
     out: dict = {"n_molecules": len(refs), "groups": {}}
     for group, name, _ in study.models():
         r = _read_json(study.workdir / "ir" / f"{name}.json")
@@ -771,7 +814,7 @@ def figure4(study: Study, summary: dict) -> Path | None:
 
     c = study.cfg.get("ir", {})
     fwhm = float(c.get("fwhm", 10.0))
-    refs = dft_results(study)
+    refs = {m: r for m, r in dft_results(study).items() if "frequencies_cm-1" in r}
     mols = [m for m in c.get("figure_molecules", list(IR_MOLECULES)) if m in refs]
     if not mols:
         mols = list(refs)[:2]

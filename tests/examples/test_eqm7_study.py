@@ -94,7 +94,7 @@ def test_every_stage_writes_its_outputs(study_run):
     mod, cfg, study, root, _ = study_run
     work = root / "work"
     assert study.work == {"train": 4, "evaluate": 8 if "pbe0_subset" in mod.test_sets(study)
-                          else 4, "dft": 1, "polarizability": 4, "ir": 4, "md": 4, "table": 1,
+                          else 4, "dft": 2, "polarizability": 4, "ir": 4, "md": 4, "table": 1,
                           "export": 1}
     for group in ("aug", "noaug"):
         for seed in (0, 1):
@@ -108,11 +108,14 @@ def test_every_stage_writes_its_outputs(study_run):
             assert (work / "ir" / f"{name}.json").exists()
             assert (work / "md" / name / "methane" / "analysis.json").exists()
             assert (work / "md" / name / "methane" / "trajectory.xyz").exists()
-    dft = json.loads((root / "data" / "references" / "pbe0_sto-3g" / "methane.json").read_text())
-    assert dft["level"] == "pbe0/sto-3g"
+    refs = root / "data" / "references" / "pbe0_sto-3g"
+    dft = json.loads((refs / "methane.json").read_text())  # static: optimum, fields
+    assert dft["level"] == "pbe0/sto-3g" and "frequencies_cm-1" not in dft
+    dft.update(json.loads((refs / "methane.ir.json").read_text()))  # harmonic: Hessian, IR
+    assert mod.dft_results(study)["methane"] == dft
     # no campaign preparation in this data set: the start is prepared here (GFN2-xTB)
     assert dft["start_geometry"] == "prepared for the reference (gfn2-xtb)"
-    assert (root / "data" / "references" / "pbe0_sto-3g" / "methane" / "start.npz").exists()
+    assert (refs / "methane" / "start.npz").exists()
     assert dft["optimisation"]["converged"]
     alpha = np.array(dft["polarizability_bohr3"])
     assert np.all(np.linalg.eigvalsh(alpha) > 0)  # a positive polarizability (sign convention)
@@ -192,6 +195,14 @@ def test_export_ships_the_augmented_ensemble_with_its_card(study_run):
     assert f"{1000 * mae:.1f}" in card            # the measured core-force MAE is quoted
     assert "PBE0/aug-cc-pVTZ" in card and "How to cite" in card and "Domain" in card
     assert "Status: **preliminary**" in card
+
+
+def test_dft_plan_finishes_the_figure_molecules_then_polarizabilities_then_hessians():
+    mod = _study_module()
+    rows = [{"name": n} for n in ("a", "fig2", "b", "fig1")]
+    plan = [(r["name"], part) for r, part in mod.dft_plan(rows, ["fig1", "fig2"])]
+    assert plan == [("fig2", "static"), ("fig2", "ir"), ("fig1", "static"), ("fig1", "ir"),
+                    ("a", "static"), ("b", "static"), ("a", "ir"), ("b", "ir")]
 
 
 def test_rerun_redoes_nothing(study_run):
