@@ -2,12 +2,13 @@
 # DFT references of the study's test molecules in the background, committed as they finish.
 #
 #   bash examples/eqm7/references.sh [NAME ...]      (from the project root; default: every test
-#                                                     molecule of the card, in the card's order)
+#                                                     molecule of the card, in `dft_plan`'s order)
 #
 # Runs `run_study.py dft` (resumable: BFGS step by step, ground state, each field, each Hessian
 # displacement) and every COMMIT_MINUTES (default 20) commits the finished reference files only:
 # .npz sub-results, NAME.json and NAME.ir.json, and the displacement files of NAME/vib/ that are
-# complete JSON (a file being written is never committed). Restart it after a session ends: nothing finished is lost.
+# complete JSON (a file being written is never committed). Restart it after a session ends:
+# nothing finished is lost.
 # Log: runs/eqm7-references.log. Stop: kill both PIDs it prints (the watcher commits once more
 # when the stage ends by itself).
 set -euo pipefail
