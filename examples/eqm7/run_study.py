@@ -859,9 +859,14 @@ def _md_start(study: Study, row: dict):
     r = _read_json(study.dft_dir / f"{row['name']}.json")
     if r is not None:
         return _dft_structure(r), "DFT optimum"
+    from ase import Atoms
+
+    from emlpack.pairs.guess import guess_pairs
+
     numbers, pos, origin = _start_geometry(study, row)
-    return Structure(numbers=numbers, positions=pos, pairs=np.zeros((0, 3)),
-                     source=row["name"]), origin
+    pairs = guess_pairs(Atoms(numbers=numbers, positions=pos))
+    return Structure(numbers=numbers, positions=pos, pairs=pairs, source=row["name"]), \
+        f"{origin}, pairs guessed"
 
 
 def stage_md(study: Study) -> None:

@@ -302,3 +302,11 @@ def test_cheap_level_hessian_starts_bfgs_in_fewer_steps(tmp_path):
     (n_default, e_default), (n_start, e_start) = runs
     assert 2 * n_start < n_default, runs
     assert abs(e_start - e_default) < 1e-3  # eV: the same minimum
+
+
+def test_md_starts_without_a_dft_reference_from_the_prepared_geometry(study_run):
+    mod, _, study, _, _ = study_run
+    s, origin = mod._md_start(study, {"name": "ethane", "smiles": "CC"})  # no DFT reference
+    assert origin == "prepared for the reference (gfn2-xtb), pairs guessed"
+    assert sorted(s.numbers.tolist()) == [1] * 6 + [6] * 2 and s.n_pairs == 7
+    assert np.linalg.norm(s.positions[0] - s.positions[1]) < 1.6  # the C-C bond of ethane
