@@ -1218,7 +1218,8 @@ def markdown(result: dict, notes: str = "") -> str:
         f"- models: {', '.join(result['models']) or 'none'}; best validation (held-out"
         " molecules) core-force MAE [meV/Å]: " + ", ".join(
             f"{n} {_val((t or {}).get('best_val', {}).get('val_forces_mae'), 1, 1000)}"
-            f" (epoch {(t or {}).get('best_epoch')})" for n, t in result["training"].items()),
+            f" (epoch {(t or {}).get('best_epoch')}, trained on {(t or {}).get('n_train')}"
+            " configurations)" for n, t in result["training"].items()),
         f"- DFT reference level (dft stage): `{result['dft_level']}`", ""]
     for set_name, title in (("test", "test molecules of the card"),
                             ("pbe0_subset", "the authors' six molecules (eqm7_pbe0_subset.xyz)")):
