@@ -143,6 +143,12 @@ class RelaxOptions:
     #: ... only in batches of at least this many pairs (measured on the trained model: float32
     #: energy+gradient 2.5x cheaper for 432 pairs, equal for 32, 1.5x dearer for 4)
     float32_min_pairs: int = 128
+    #: "coulomb": the iterations evaluate the SchNet filters of the edges that change length
+    #: by cubic Hermite interpolation from a table (:meth:`emlpack.nn.schnet.SchNet.
+    #: filter_table`; float64 ~1e-10 relative) instead of the filter network; a structure
+    #: converged on them is certified by an exact evaluation (and goes on with exact ones if it
+    #: is not converged there), so results (energy, forces, convergence) are exact-model ones
+    tabulated_filters: bool = True
     #: Hessian probes per vectorised batch are limited so that probes x (edges x filters +
     #: particles x features) stays below this many elements (bounds memory to ~2 GB)
     probe_budget: float = 6e6
@@ -164,7 +170,7 @@ class _PairProblem:
     """Energy, gradient and pair-block Hessians as functions of all pair coordinates."""
 
     def __init__(self, model: EMLP, g: Graph, hold_filters: bool = True,
-                 held: HeldFilters | None = None) -> None:
+                 held: HeldFilters | None = None, tabulated: bool = False) -> None:
         self.model = model
         self.g = g
         self.pair_idx = torch.nonzero(g.is_pair).squeeze(1)
@@ -182,8 +188,8 @@ class _PairProblem:
             and not any(p.requires_grad for p in model.parameters())
         ):
             core_core = ~(g.is_pair[g.edge_i] | g.is_pair[g.edge_j])
-            if bool(core_core.any()):
-                self.held = model.hold_filters(g, core_core)
+            if bool(core_core.any()) or tabulated:
+                self.held = model.hold_filters(g, core_core, tabulated=tabulated)
 
         def total_energy(x: torch.Tensor) -> torch.Tensor:
             return self.energy(x).sum()
@@ -365,14 +371,14 @@ def _held_subset(prob: _PairProblem, keep: torch.Tensor) -> HeldFilters | None:
     part = keep[g.batch]
     old_to_new = torch.cumsum(part.long(), 0) - 1
     rows = part[held.i]
-    if not bool(rows.any()):
+    if not bool(rows.any()) and held.table is None:
         return None
     is_free = torch.zeros(len(g.edge_i), dtype=torch.bool)
     is_free[held.free] = True
     return HeldFilters(
         i=old_to_new[held.i[rows]], j=old_to_new[held.j[rows]],
         filters=[f[rows] for f in held.filters],
-        free=torch.nonzero(is_free[part[g.edge_i]]).squeeze(1),
+        free=torch.nonzero(is_free[part[g.edge_i]]).squeeze(1), table=held.table,
     )
 
 
@@ -595,11 +601,15 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
     low = bool(opts.float32_above > 0 and g.n_pairs.max() > 0
                and int(g.n_pairs.sum()) >= opts.float32_min_pairs
                and type(model).energy_parts is EMLP.energy_parts)
-    prob32 = _PairProblem(model, g.to(dtype=torch.float32)) if low else prob
-    work = prob32 if low else prob
+    tab = bool(opts.tabulated_filters and type(model).energy_parts is EMLP.energy_parts)
+    prob_tab = _PairProblem(model, g, tabulated=True) if tab else prob
+    prob32 = _PairProblem(model, g.to(dtype=torch.float32), tabulated=tab) if low else prob
+    work = prob32 if low else prob_tab
     energy, grad = (t.to(dtype) for t in work.energy_gradient(x.to(work.g.dtype)))
     use32 = torch.full((b,), bool(low))
     exact64 = ~use32  # energy and gradient are float64 values
+    # ... and from the exact model (not the tabulated filters)
+    certified = exact64 & (not tab)
     gc, hc = coulomb(x)
     m = 3 * prob.n_max
     short = torch.zeros(b, m, m, dtype=dtype)
@@ -610,13 +620,25 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
     n_hess = torch.zeros(b, dtype=torch.long)
     iters = torch.zeros(b, dtype=torch.long)
     fmax = prob.per_structure_max_norm(projected(grad, x))
-    converged = (fmax < opts.fmax) & exact64 | (g.n_pairs == 0)
+    converged = (fmax < opts.fmax) & certified | (g.n_pairs == 0)
     if opts.short_range_start == "lumped" and not bool(converged.all()):
         # float32: a larger difference step (measured: 3e-4 Å gives 3e-4 relative error)
         short = _lumped_short_range(work, coulomb, x, grad, 3e-4 if low else 1e-4)
         n_eval += 3 * (~converged).long()
     evaluate = _ActiveEvaluator(model, prob)
+    evaluate_tab = _ActiveEvaluator(model, prob_tab) if tab else evaluate
     evaluate32 = _ActiveEvaluator(model, prob32)
+
+    def certify(energy, grad, fmax, converged):
+        # structures converged on tabulated filters: exact evaluation where they are
+        check = ~converged & exact64 & ~certified & (fmax < opts.fmax)
+        if bool(check.any()):
+            energy, grad = evaluate(x, check, energy, grad)
+            n_eval.add_(check.long())
+            certified.logical_or_(check)
+            fmax = prob.per_structure_max_norm(projected(grad, x))
+            converged = converged | (fmax < opts.fmax) & certified
+        return energy, grad, fmax, converged
     curvilinear = _BondRotations(structures, x) if opts.bond_rotations else None
     # trust radius (Å, largest pair displacement): halved to the rejected step's length,
     # doubled from an accepted one's up to max_step
@@ -624,6 +646,7 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
     stalled = torch.zeros(b, dtype=torch.bool)
     quasi_newton = min(opts.max_iterations, opts.newton_after or opts.max_iterations)
     for _ in range(quasi_newton):
+        energy, grad, fmax, converged = certify(energy, grad, fmax, converged)
         active = ~converged & ~stalled
         if not bool(active.any()):
             break
@@ -642,8 +665,10 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         in32 = moving & use32 & ~trying
         in64 = active & ~in32
         e_new, g_new = energy, grad
-        if bool(in64.any()):
-            e_new, g_new = evaluate(x_new, in64, energy, grad)
+        if bool((in64 & certified).any()):
+            e_new, g_new = evaluate(x_new, in64 & certified, e_new, g_new)
+        if bool((in64 & ~certified).any()):
+            e_new, g_new = evaluate_tab(x_new, in64 & ~certified, e_new, g_new)
         if bool(in32.any()):
             e32, g32 = evaluate32(x_new.float(), in32, energy.float(), grad.float())
             e_new = torch.where(in32, e32.to(dtype), e_new)
@@ -683,8 +708,9 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         radius = torch.where(reject, 0.5 * taken, radius)
         stalled |= reject & (radius < 1e-7)
         fmax = prob.per_structure_max_norm(projected(grad, x))
-        converged = converged | (fmax < opts.fmax) & exact64
+        converged = converged | (fmax < opts.fmax) & certified
 
+    energy, grad, fmax, converged = certify(energy, grad, fmax, converged)
     # the few structures still unconverged (nearly flat modes: the SR1 model learns them
     # slowly) finish with the exact-Hessian Newton method
     late = ~converged & ~stalled & (g.n_pairs > 0)
@@ -707,6 +733,15 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
             iters[k] += r.iterations
             n_eval[k] += r.n_evaluations
             n_hess[k] += r.n_hessians
+        certified |= late
+    # structures left with values of the tabulated filters or float32 (stalled, out of
+    # iterations): the exact model's energy and forces where they are
+    stale = ~certified & (g.n_pairs > 0)
+    if bool(stale.any()):
+        energy, grad = evaluate(x, stale, energy, grad)
+        n_eval += stale.long()
+        fmax = prob.per_structure_max_norm(projected(grad, x))
+        converged = converged | (fmax < opts.fmax) & stale
 
     model_hessian = hc + short + pad_eye
     min_curv = _min_curvature(prob, x, grad, lower, upper, projected, opts, n_hess,
