@@ -213,30 +213,3 @@ def test_held_core_core_filters_equal_plain_evaluation(which, small, trained):
     finally:
         for p, f in zip(model.parameters(), flags, strict=True):
             p.requires_grad_(f)
-
-
-@pytest.mark.parametrize("which", ["small", "trained"])
-def test_tabulated_filters_reach_the_exact_filter_minima(which, small, trained):
-    """Iterations on tabulated SchNet filters (the default; float32 start forced on) end at the
-    minima of the exact filters: energies within 1e-6 eV, and the reported energy and forces
-    are the exact model's at the returned pairs (convergence certified there)."""
-    model = small if which == "small" else trained
-    starts = _starts("::75")
-    tab = relax_pairs(model, starts, fmax=1e-5, check_curvature=False, float32_min_pairs=0)
-    ref = relax_pairs(model, starts, fmax=1e-5, check_curvature=False, float32_min_pairs=0,
-                      tabulated_filters=False)
-    compared = 0
-    for s, a, b in zip(starts, tab, ref, strict=True):
-        if b.failed:  # random weights merge some pairs; those are no minima to compare
-            continue
-        assert not a.failed, a.reason
-        assert a.energy == pytest.approx(b.energy, abs=1e-6)
-        g = model.graph(s.copy(pairs=a.pairs), dtype=torch.float64)
-        prob = _PairProblem(model, g, hold_filters=False)
-        x = g.positions[prob.pair_idx].clone()
-        e, grad = prob.energy_gradient(x)
-        assert float(e[0]) == pytest.approx(a.energy, rel=1e-12)
-        np.testing.assert_allclose(-grad.numpy(), a.pair_forces, rtol=0, atol=1e-10)
-        assert np.linalg.norm(grad.numpy(), axis=1).max() < 1e-5
-        compared += 1
-    assert compared >= (8 if which == "trained" else 2)

@@ -179,22 +179,17 @@ class EMLP(nn.Module):
         d = cls.edge_vectors(g, positions, cell, edges)
         return torch.sqrt((d * d).sum(-1) + 1e-20)
 
-    def hold_filters(self, g: Graph, hold: torch.Tensor, tabulated: bool = False) -> HeldFilters:
+    def hold_filters(self, g: Graph, hold: torch.Tensor) -> HeldFilters:
         """Filters of the edges ``hold`` (E,) bool of ``g`` at ``g``'s geometry, computed once
         for :meth:`energy_parts` (e.g. the core-core edges while only the pairs move; frozen
-        parameters); ``tabulated``: the other edges' filters are interpolated from
-        :meth:`~emlpack.nn.schnet.SchNet.filter_table` (float64: ~1e-10 relative, measured)
-        instead of evaluated by the filter network."""
+        parameters)."""
         idx = torch.nonzero(hold).squeeze(1)
         with torch.no_grad():
             r = self.edge_lengths(g, g.positions.detach(), g.cell.detach(), idx)
             filters = self.schnet.frozen_filters(r)
-        table = None
-        if tabulated:
-            table = self.schnet.filter_table(g.positions.dtype, g.positions.device)
         return HeldFilters(
             i=g.edge_i[idx], j=g.edge_j[idx], filters=filters,
-            free=torch.nonzero(~hold).squeeze(1), table=table,
+            free=torch.nonzero(~hold).squeeze(1),
         )
 
     def energy(self, g: Graph, positions=None, cell=None, field=None, held=None) -> torch.Tensor:

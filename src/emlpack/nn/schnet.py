@@ -28,8 +28,6 @@ from torch import nn
 from emlpack import geometry
 
 LN2 = math.log(2.0)
-#: default node spacing (Å) of the tabulated filters (:meth:`SchNet.filter_table`)
-TABLE_SPACING = 0.002
 
 
 def shifted_softplus(x: torch.Tensor) -> torch.Tensor:
@@ -86,55 +84,6 @@ class HeldFilters:
     j: torch.Tensor
     filters: list[torch.Tensor]
     free: torch.Tensor
-    #: the free edges' filters from this table (:meth:`SchNet.filter_table`) instead of the
-    #: filter network: equal to it within the table's interpolation error
-    table: FilterTable | None = None
-
-
-@dataclass
-class FilterTable:
-    """Filters of every interaction tabulated on the nodes ``start + k spacing`` (Å),
-    ``k = 0..n``, for piecewise cubic Hermite interpolation (:meth:`SchNet.tabulated_filters`).
-
-    ``coefficients`` (n, 4, L K): per interval the power-basis coefficients in
-    ``t = (r - r_k) / spacing`` in [0, 1] of the cubic matching the filters' exact values and
-    slopes at both nodes (interactions side by side, ``K`` filters each). The nodes include
-    ``cutoff - transition`` and ``cutoff``, where the cosine cutoff's second derivative jumps,
-    so every interval sees a smooth function.
-    """
-
-    start: float
-    spacing: float
-    end: float
-    n_filters: int
-    coefficients: torch.Tensor
-
-
-class _HermiteRows(torch.autograd.Function):
-    """Piecewise cubic ``w = c0 + t (c1 + t (c2 + t c3))`` at ``u`` (E,) in units of the node
-    spacing (interval ``floor(u)``, ``t = u - floor(u)``) from the coefficients (n, 4, M);
-    the backward gives ``dL/du = sum (dL/dw) dw/dt`` in one pass (the plain autograd of the
-    Horner steps saved and re-read the gathered rows: measured 1.6x slower). First
-    derivatives only."""
-
-    @staticmethod
-    def forward(ctx, u: torch.Tensor, coefficients: torch.Tensor) -> torch.Tensor:
-        k = torch.clamp(u.detach().floor(), 0, coefficients.shape[0] - 1)
-        t = (u.detach() - k)[:, None]
-        c = coefficients.index_select(0, k.long())  # (E, 4, M)
-        w = torch.addcmul(c[:, 2], t, c[:, 3])
-        if ctx.needs_input_grad[0]:
-            # dw/dt = c1 + 2 t (c2 + 1.5 t c3)
-            ctx.save_for_backward(torch.addcmul(c[:, 1], t, torch.addcmul(c[:, 2], t, c[:, 3],
-                                                                          value=1.5), value=2.0))
-        w = torch.addcmul(c[:, 1], t, w)
-        return torch.addcmul(c[:, 0], t, w)
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_w: torch.Tensor):
-        (slope,) = ctx.saved_tensors
-        return (grad_w * slope).sum(1), None
 
 
 class GaussianBasis(nn.Module):
@@ -227,19 +176,14 @@ class SchNet(nn.Module):
     ) -> torch.Tensor:
         """Atomic energies (N,) from particle numbers and the half-list edge lengths ``r`` (Å)
         of the edges ``(i, j)``; with ``held`` (frozen weights only) the edges ``held.i``,
-        ``held.j`` contribute with their held filters in addition (and with ``held.table`` the
-        filters of ``(i, j)`` are interpolated from it)."""
+        ``held.j`` contribute with their held filters in addition."""
+        rbf = self.rbf(r)
+        fcut = cosine_cutoff(r, self.cutoff, self.cutoff_transition)
         frozen = not any(p.requires_grad for p in self.parameters())
         if held is not None and not frozen:
             raise ValueError("held filters need frozen parameters (requires_grad=False)")
         if frozen:
-            if held is not None and held.table is not None:
-                filters = self.tabulated_filters(r, held.table)
-            else:
-                filters = self.frozen_filters(r)
-            return self._forward_folded(numbers, filters, i, j, held)
-        rbf = self.rbf(r)
-        fcut = cosine_cutoff(r, self.cutoff, self.cutoff_transition)
+            return self._forward_folded(numbers, rbf, fcut, i, j, held)
         h = self.embedding(numbers).to(r.dtype)
         for block in self.interactions:
             h = block(h, rbf, fcut, i, j, self.message_norm)
@@ -263,7 +207,8 @@ class SchNet(nn.Module):
         parameter version): ``tables``, ``cross``, ``table_out``, ``w_out``, ``filters`` (per
         interaction ``(w1, b1, w2, b2, wc, bc)``, ``wc`` divided by the message norm) and
         ``heads``."""
-        key = self._parameter_key()
+        params = list(self.parameters())
+        key = tuple((id(p), p._version, p.data_ptr()) for p in params)
         caches = self.__dict__.setdefault("_fold_cache", {})  # per dtype and device
         cache = caches.get((dtype, str(device)))
         if cache is not None and cache[0] == key:
@@ -323,50 +268,6 @@ class SchNet(nn.Module):
         caches[(dtype, str(device))] = (key, out)
         return out
 
-    def _parameter_key(self) -> tuple:
-        return tuple((id(p), p._version, p.data_ptr()) for p in self.parameters())
-
-    def filter_table(self, dtype: torch.dtype, device, spacing: float = TABLE_SPACING
-                     ) -> FilterTable:
-        """The filters of every interaction tabulated for cubic Hermite interpolation
-        (:class:`FilterTable`), node spacing at most ``spacing`` (Å), values and exact slopes
-        from :meth:`filter_taylor` in float64 (cached per dtype, device, spacing and parameter
-        version). Interpolation error ~ spacing^4 max|d^4W/dr^4| / 384."""
-        key = self._parameter_key()
-        caches = self.__dict__.setdefault("_table_cache", {})
-        cache = caches.get((dtype, str(device), spacing))
-        if cache is not None and cache[0] == key:
-            return cache[1]
-        switch = self.cutoff - self.cutoff_transition
-        per_switch = max(1, math.ceil(self.cutoff_transition / spacing - 1e-9))
-        h = self.cutoff_transition / per_switch
-        below = math.ceil(switch / h - 1e-9)  # nodes from start <= 0 up to the switch
-        with torch.no_grad():
-            nodes = switch + h * torch.arange(-below, per_switch + 1, dtype=torch.float64)
-            nodes[-1] = self.cutoff
-            taylor = self.filter_taylor(nodes.to(self.embedding.weight.device))
-            v = torch.cat([w for w, _, _ in taylor], 1)
-            d = torch.cat([w1 for _, w1, _ in taylor], 1) * h
-            v0, v1, d0, d1 = v[:-1], v[1:], d[:-1], d[1:]
-            coef = torch.stack(
-                [v0, d0, 3.0 * (v1 - v0) - 2.0 * d0 - d1, 2.0 * (v0 - v1) + d0 + d1], 1
-            )
-        table = FilterTable(
-            start=switch - below * h, spacing=h, end=self.cutoff,
-            n_filters=taylor[0][0].shape[1],
-            coefficients=coef.to(dtype=dtype, device=device).contiguous(),
-        )
-        caches[(dtype, str(device), spacing)] = (key, table)
-        return table
-
-    def tabulated_filters(self, r: torch.Tensor, table: FilterTable) -> list[torch.Tensor]:
-        """Filters ``W_ij`` (E, K) of every interaction at the edge lengths ``r`` (Å),
-        interpolated from ``table`` (:meth:`filter_table`; 0 beyond the cutoff); differentiable
-        in ``r`` (the derivative of the interpolant)."""
-        u = (torch.clamp(r, max=table.end) - table.start) / table.spacing
-        w = _HermiteRows.apply(u, table.coefficients)
-        return list(w.split(table.n_filters, 1))
-
     def filter_taylor(self, r: torch.Tensor) -> list[tuple[torch.Tensor, ...]]:
         """Filters of every interaction and their first and second derivatives in the edge
         length, ``(W, dW/dr, d2W/dr2)`` each (E, K), at the edge lengths ``r`` (Å).
@@ -425,17 +326,17 @@ class SchNet(nn.Module):
             fc * -LN2, softplus(torch.addmm(b2, softplus(torch.addmm(b1, rbf, w1)), w2)), fc
         )
 
-    def _forward_folded(self, numbers, filters, i, j, held=None) -> torch.Tensor:
-        # ``filters``: per interaction the filters (E, K) of the edges (i, j)
-        fw = self.folded_weights(filters[0].dtype, filters[0].device)
+    def _forward_folded(self, numbers, rbf, fcut, i, j, held=None) -> torch.Tensor:
+        fw = self.folded_weights(rbf.dtype, rbf.device)
         softplus = nn.functional.softplus
+        fc = fcut[:, None]
         vs = []
         for t, f in enumerate(fw["filters"]):
             wc, bc = f[4], f[5]
             a = fw["tables"][t].index_select(0, numbers)
             for s, m in enumerate(fw["cross"][t]):
                 a = torch.addmm(a, vs[s], m)
-            w = filters[t]
+            w = self._filter(f, rbf, fc)
             conv = None
             if held is not None:
                 conv = convolve(a, held.filters[t].to(a.dtype), held.i, held.j)

@@ -49,6 +49,15 @@ throughout, median 13 evaluations as before, CPU ~1.2 s -> ~0.95 s at load ~9 (n
 earlier float32 phase with the plain float64 Armijo test rejected good steps near the minimum
 and cost more than it saved.
 
+Tried and dropped (issue 14): SchNet filters of the free edges by cubic Hermite interpolation
+from a table of exact values and slopes (spacing 0.002 Å: 2e-11 / 4.5e-10 of max|W| on the
+trained / paper-size fixture weights, dW/dr 1.4e-8 / 1.7e-7), in the iterations, with exact
+evaluations below 10 fmax and a certifying exact evaluation (branch wip-tabfilter, commit
+f44e654). The gathered table rows (4 per edge and filter) are memory-bound: filters forward +
+backward 1.6x cheaper on the trained model, an energy+gradient ~10-20 %, the paper-size forward
+no cheaper; the relaxation no faster (CPU exact/tabulated 1.00, median of 6 alternated runs;
+benchmark CPU speedup vs SciPy 11.8-12.9 before, 11.3-15.2 after, noisy at load ~8).
+
 ``initial_hessian="exact"``: the previous default, Newton with exact vectorised pair Hessians
 (forward over reverse), refreshed when the line search backtracks or every ``hessian_every``
 steps, damped BFGS updates in between. ``"bfgs"``: damped BFGS from a scaled identity.
@@ -143,12 +152,6 @@ class RelaxOptions:
     #: ... only in batches of at least this many pairs (measured on the trained model: float32
     #: energy+gradient 2.5x cheaper for 432 pairs, equal for 32, 1.5x dearer for 4)
     float32_min_pairs: int = 128
-    #: "coulomb": the iterations evaluate the SchNet filters of the edges that change length
-    #: by cubic Hermite interpolation from a table (:meth:`emlpack.nn.schnet.SchNet.
-    #: filter_table`; float64 ~1e-10 relative) instead of the filter network; a structure
-    #: converged on them is certified by an exact evaluation (and goes on with exact ones if it
-    #: is not converged there), so results (energy, forces, convergence) are exact-model ones
-    tabulated_filters: bool = True
     #: Hessian probes per vectorised batch are limited so that probes x (edges x filters +
     #: particles x features) stays below this many elements (bounds memory to ~2 GB)
     probe_budget: float = 6e6
@@ -170,7 +173,7 @@ class _PairProblem:
     """Energy, gradient and pair-block Hessians as functions of all pair coordinates."""
 
     def __init__(self, model: EMLP, g: Graph, hold_filters: bool = True,
-                 held: HeldFilters | None = None, tabulated: bool = False) -> None:
+                 held: HeldFilters | None = None) -> None:
         self.model = model
         self.g = g
         self.pair_idx = torch.nonzero(g.is_pair).squeeze(1)
@@ -188,8 +191,8 @@ class _PairProblem:
             and not any(p.requires_grad for p in model.parameters())
         ):
             core_core = ~(g.is_pair[g.edge_i] | g.is_pair[g.edge_j])
-            if bool(core_core.any()) or tabulated:
-                self.held = model.hold_filters(g, core_core, tabulated=tabulated)
+            if bool(core_core.any()):
+                self.held = model.hold_filters(g, core_core)
 
         def total_energy(x: torch.Tensor) -> torch.Tensor:
             return self.energy(x).sum()
@@ -371,14 +374,14 @@ def _held_subset(prob: _PairProblem, keep: torch.Tensor) -> HeldFilters | None:
     part = keep[g.batch]
     old_to_new = torch.cumsum(part.long(), 0) - 1
     rows = part[held.i]
-    if not bool(rows.any()) and held.table is None:
+    if not bool(rows.any()):
         return None
     is_free = torch.zeros(len(g.edge_i), dtype=torch.bool)
     is_free[held.free] = True
     return HeldFilters(
         i=old_to_new[held.i[rows]], j=old_to_new[held.j[rows]],
         filters=[f[rows] for f in held.filters],
-        free=torch.nonzero(is_free[part[g.edge_i]]).squeeze(1), table=held.table,
+        free=torch.nonzero(is_free[part[g.edge_i]]).squeeze(1),
     )
 
 
@@ -601,17 +604,11 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
     low = bool(opts.float32_above > 0 and g.n_pairs.max() > 0
                and int(g.n_pairs.sum()) >= opts.float32_min_pairs
                and type(model).energy_parts is EMLP.energy_parts)
-    tab = bool(opts.tabulated_filters and type(model).energy_parts is EMLP.energy_parts)
-    prob_tab = _PairProblem(model, g, tabulated=True) if tab else prob
-    prob32 = _PairProblem(model, g.to(dtype=torch.float32), tabulated=tab) if low else prob
-    work = prob32 if low else prob_tab
+    prob32 = _PairProblem(model, g.to(dtype=torch.float32)) if low else prob
+    work = prob32 if low else prob
     energy, grad = (t.to(dtype) for t in work.energy_gradient(x.to(work.g.dtype)))
     use32 = torch.full((b,), bool(low))
     exact64 = ~use32  # energy and gradient are float64 values
-    # ... and from the exact model (not the tabulated filters)
-    certified = exact64 & (not tab)
-    # structures evaluated with the exact model from now on (below TABLE_HANDOVER x fmax)
-    exact_next = torch.full((b,), not tab)
     gc, hc = coulomb(x)
     m = 3 * prob.n_max
     short = torch.zeros(b, m, m, dtype=dtype)
@@ -622,28 +619,13 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
     n_hess = torch.zeros(b, dtype=torch.long)
     iters = torch.zeros(b, dtype=torch.long)
     fmax = prob.per_structure_max_norm(projected(grad, x))
-    converged = (fmax < opts.fmax) & certified | (g.n_pairs == 0)
+    converged = (fmax < opts.fmax) & exact64 | (g.n_pairs == 0)
     if opts.short_range_start == "lumped" and not bool(converged.all()):
         # float32: a larger difference step (measured: 3e-4 Å gives 3e-4 relative error)
         short = _lumped_short_range(work, coulomb, x, grad, 3e-4 if low else 1e-4)
         n_eval += 3 * (~converged).long()
     evaluate = _ActiveEvaluator(model, prob)
-    evaluate_tab = _ActiveEvaluator(model, prob_tab) if tab else evaluate
     evaluate32 = _ActiveEvaluator(model, prob32)
-
-    def certify(energy, grad, fmax, converged):
-        # structures converged on tabulated filters: exact evaluation where they are
-        check = ~converged & exact64 & ~certified & (fmax < opts.fmax)
-        if bool(check.any()):
-            e_ev, g_ev = evaluate(x, check, energy, grad)
-            energy = torch.where(check, e_ev, energy)
-            grad = torch.where(check[prob.pair_batch, None], g_ev, grad)
-            n_eval.add_(check.long())
-            certified.logical_or_(check)
-            exact_next.logical_or_(check)
-            fmax = prob.per_structure_max_norm(projected(grad, x))
-            converged = converged | (fmax < opts.fmax) & certified
-        return energy, grad, fmax, converged
     curvilinear = _BondRotations(structures, x) if opts.bond_rotations else None
     # trust radius (Å, largest pair displacement): halved to the rejected step's length,
     # doubled from an accepted one's up to max_step
@@ -651,7 +633,6 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
     stalled = torch.zeros(b, dtype=torch.bool)
     quasi_newton = min(opts.max_iterations, opts.newton_after or opts.max_iterations)
     for _ in range(quasi_newton):
-        energy, grad, fmax, converged = certify(energy, grad, fmax, converged)
         active = ~converged & ~stalled
         if not bool(active.any()):
             break
@@ -669,13 +650,9 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         step = x_new - x
         in32 = moving & use32 & ~trying
         in64 = active & ~in32
-        exact_next |= in64 & exact64 & (fmax < TABLE_HANDOVER * opts.fmax)
         e_new, g_new = energy, grad
-        for ev, sel in ((evaluate, in64 & exact_next), (evaluate_tab, in64 & ~exact_next)):
-            if bool(sel.any()):  # (an evaluator returns values for a superset of ``sel``)
-                e_ev, g_ev = ev(x_new, sel, energy, grad)
-                e_new = torch.where(sel, e_ev, e_new)
-                g_new = torch.where(sel[prob.pair_batch, None], g_ev, g_new)
+        if bool(in64.any()):
+            e_new, g_new = evaluate(x_new, in64, energy, grad)
         if bool(in32.any()):
             e32, g32 = evaluate32(x_new.float(), in32, energy.float(), grad.float())
             e_new = torch.where(in32, e32.to(dtype), e_new)
@@ -684,17 +661,13 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         n_eval += active.long()
         iters += moving.long()
         slope = segment_sum((grad * step).sum(1), prob.pair_batch, b)
-        # allowance for the energies' errors: float32; tabulated filters vs the exact model at
-        # the hand-over (measured: 5e-11 relative on the trained benchmark model)
-        mixed = in64 & exact_next & ~certified
-        noise = torch.where(in32, 1e-6, torch.where(mixed, 1e-9, 1e-12)) * energy.abs()
+        noise = torch.where(in32, 1e-6, 1e-12) * energy.abs()
         accept = switch | moving & ~trying & (e_new <= energy + 1e-4 * slope + noise)
         if bool(trying.any()):
             norm_new = segment_sum((projected(g_new, x_new) ** 2).sum(1), prob.pair_batch, b)
             norm_old = segment_sum((projected(grad, x) ** 2).sum(1), prob.pair_batch, b)
             accept |= trying & (norm_new < norm_old)
         exact64 |= switch | trying & accept
-        certified = torch.where(accept, in64 & exact_next, certified)
         use32 &= ~trying
         reject = active & ~accept
         # SR1 update of the short-range model
@@ -719,9 +692,8 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         radius = torch.where(reject, 0.5 * taken, radius)
         stalled |= reject & (radius < 1e-7)
         fmax = prob.per_structure_max_norm(projected(grad, x))
-        converged = converged | (fmax < opts.fmax) & certified
+        converged = converged | (fmax < opts.fmax) & exact64
 
-    energy, grad, fmax, converged = certify(energy, grad, fmax, converged)
     # the few structures still unconverged (nearly flat modes: the SR1 model learns them
     # slowly) finish with the exact-Hessian Newton method
     late = ~converged & ~stalled & (g.n_pairs > 0)
@@ -744,17 +716,6 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
             iters[k] += r.iterations
             n_eval[k] += r.n_evaluations
             n_hess[k] += r.n_hessians
-        certified |= late
-    # structures left with values of the tabulated filters or float32 (stalled, out of
-    # iterations): the exact model's energy and forces where they are
-    stale = ~certified & (g.n_pairs > 0)
-    if bool(stale.any()):
-        e_ev, g_ev = evaluate(x, stale, energy, grad)
-        energy = torch.where(stale, e_ev, energy)
-        grad = torch.where(stale[prob.pair_batch, None], g_ev, grad)
-        n_eval += stale.long()
-        fmax = prob.per_structure_max_norm(projected(grad, x))
-        converged = converged | (fmax < opts.fmax) & stale
 
     model_hessian = hc + short + pad_eye
     min_curv = _min_curvature(prob, x, grad, lower, upper, projected, opts, n_hess,
@@ -784,11 +745,6 @@ def _lumped_short_range(prob, coulomb, x, grad, step=1e-4):
     out[prob.pair_batch, prob.local, prob.local] = blocks
     return out.permute(0, 1, 3, 2, 4).reshape(b, 3 * n, 3 * n)
 
-
-#: "coulomb" with tabulated filters: structures whose largest pair force is below this times
-#: fmax take their further steps with the exact model, so that they usually converge without
-#: a separate certifying evaluation
-TABLE_HANDOVER = 10.0
 
 _DAVIDSON_TRACE: list | None = None  # set to a list to record (products, residual, value)
 
