@@ -49,6 +49,15 @@ throughout, median 13 evaluations as before, CPU ~1.2 s -> ~0.95 s at load ~9 (n
 earlier float32 phase with the plain float64 Armijo test rejected good steps near the minimum
 and cost more than it saved.
 
+Tried and dropped (issue 14): SchNet filters of the free edges by cubic Hermite interpolation
+from a table of exact values and slopes (spacing 0.002 Å: 2e-11 / 4.5e-10 of max|W| on the
+trained / paper-size fixture weights, dW/dr 1.4e-8 / 1.7e-7), in the iterations, with exact
+evaluations below 10 fmax and a certifying exact evaluation (branch wip-tabfilter, commit
+f44e654). The gathered table rows (4 per edge and filter) are memory-bound: filters forward +
+backward 1.6x cheaper on the trained model, an energy+gradient ~10-20 %, the paper-size forward
+no cheaper; the relaxation no faster (CPU exact/tabulated 1.00, median of 6 alternated runs;
+benchmark CPU speedup vs SciPy 11.8-12.9 before, 11.3-15.2 after, noisy at load ~8).
+
 ``initial_hessian="exact"``: the previous default, Newton with exact vectorised pair Hessians
 (forward over reverse), refreshed when the line search backtracks or every ``hessian_every``
 steps, damped BFGS updates in between. ``"bfgs"``: damped BFGS from a scaled identity.
