@@ -565,8 +565,8 @@ def dft_vibrations(study: Study, static: dict, labeler) -> dict:
 def dft_plan(rows: list[dict], figure: list[str]) -> list[tuple[dict, str]]:
     """(molecule, part) in the order the dft stage computes them: the IR figure's molecules
     completely, then every other molecule's ``static`` reference, then their ``ir`` ones."""
-    first = [r for r in rows if r["name"] in set(figure)]
-    rest = [r for r in rows if r["name"] not in set(figure)]
+    first = [r for r in rows if r["name"] in figure]
+    rest = [r for r in rows if r["name"] not in figure]
     return ([(r, part) for r in first for part in ("static", "ir")]
             + [(r, "static") for r in rest] + [(r, "ir") for r in rest])
 
@@ -627,6 +627,11 @@ def dft_results(study: Study) -> dict[str, dict]:
             r.update(_read_json(study.dft_dir / f"{row['name']}.ir.json") or {})
             out[row["name"]] = r
     return out
+
+
+def ir_references(study: Study) -> dict[str, dict]:
+    """The DFT references whose harmonic part (frequencies, intensities) is finished."""
+    return {m: r for m, r in dft_results(study).items() if "frequencies_cm-1" in r}
 
 
 def _dft_structure(r: dict):
@@ -780,7 +785,7 @@ def _freq_mae(a, b) -> float | None:
 
 
 def ir_summary(study: Study) -> dict | None:
-    refs = {m: r for m, r in dft_results(study).items() if "frequencies_cm-1" in r}
+    refs = ir_references(study)
     out: dict = {"n_molecules": len(refs), "groups": {}}
     for group, name, _ in study.models():
         r = _read_json(study.workdir / "ir" / f"{name}.json")
@@ -814,7 +819,7 @@ def figure4(study: Study, summary: dict) -> Path | None:
 
     c = study.cfg.get("ir", {})
     fwhm = float(c.get("fwhm", 10.0))
-    refs = {m: r for m, r in dft_results(study).items() if "frequencies_cm-1" in r}
+    refs = ir_references(study)
     mols = [m for m in c.get("figure_molecules", list(IR_MOLECULES)) if m in refs]
     if not mols:
         mols = list(refs)[:2]
