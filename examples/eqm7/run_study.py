@@ -171,7 +171,13 @@ class Study:
 
     # ------------------------------------------------------------------ models
     def groups(self) -> dict[str, bool]:
-        return {"aug": True, "noaug": False}
+        """The model groups (name: augmented), restricted to ``cfg["groups"]`` when given."""
+        groups = {"aug": True, "noaug": False}
+        chosen = self.cfg.get("groups") or list(groups)
+        unknown = sorted(set(chosen) - set(groups))
+        if unknown:
+            raise SystemExit(f"groups: unknown {unknown} (known: {sorted(groups)})")
+        return {name: aug for name, aug in groups.items() if name in chosen}
 
     def model_dir(self, group: str, seed: int) -> Path:
         return self.workdir / "models" / group / f"seed{seed}"

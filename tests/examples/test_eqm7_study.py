@@ -205,6 +205,23 @@ def test_dft_plan_finishes_the_figure_molecules_then_polarizabilities_then_hessi
                     ("a", "static"), ("b", "static"), ("a", "ir"), ("b", "ir")]
 
 
+def test_groups_restrict_training_to_the_chosen_group(study_run):
+    """``groups=[aug]`` (the shipped ensemble alone) lists, trains and evaluates only the
+    augmented models; an unknown group name is one clear error."""
+    mod, cfg, study, root, _ = study_run
+    only = mod.Study(mod.load_config(ROOT / "examples" / "eqm7" / "config.yaml",
+                                     [f"data={root / 'data'}", f"workdir={root / 'work'}",
+                                      "seeds=[0, 1]", "groups=[aug]"]), log=lambda m: None)
+    assert list(only.groups()) == ["aug"]
+    assert {group for group, _, _ in only.models()} == {"aug"}
+    assert len(only.models()) == 2
+    bad = mod.Study(mod.load_config(ROOT / "examples" / "eqm7" / "config.yaml",
+                                    [f"workdir={root / 'work'}", "groups=[augmented]"]),
+                    log=lambda m: None)
+    with pytest.raises(SystemExit, match="unknown"):
+        bad.groups()
+
+
 def test_rerun_redoes_nothing(study_run):
     mod, cfg, study, root, _ = study_run
     work = root / "work"
