@@ -500,6 +500,9 @@ def _setup(model, structures, bounds, dtype=torch.float64):
     return g, prob, x, lower, upper, projected
 
 
+_ROTATE = True
+
+
 def _newton_step(prob, hessian, gp, held, floor, active, alpha, max_step):
     """Regularised projected-Newton step: coordinates held at a bound by the gradient are
     fixed (rows/columns replaced by the identity), the model is shifted to curvature >= floor,
@@ -572,12 +575,24 @@ class _BondRotations:
             raise ValueError(f"{len(self.a)} pair axes for {len(x)} pairs")
 
     def __call__(self, x: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+        return self.turn(x, step)[0]
+
+    def _frame(self, x: torch.Tensor):
+        """Per pair: distance along the axis (P, 1), radius (P, 1), radial and tangential unit
+        vectors (P, 3), and whether the pair turns (P, 1)."""
         rel = x - self.a
         along = (rel * self.u).sum(1, keepdim=True)
         perp = rel - along * self.u
         rho = torch.linalg.norm(perp, dim=1, keepdim=True)
         rhat = perp / torch.clamp(rho, min=1e-12)
         that = torch.linalg.cross(self.u, rhat, dim=1)
+        return along, rho, rhat, that, self.on[:, None] & (rho > self.rho_min)
+
+    def turn(self, x: torch.Tensor, step: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The new pairs (P, 3) for the step (P, 3) in cylindrical coordinates (radial,
+        tangential as the arc, axial; Å) and each pair's rotation (P, 3, 3) about its axis
+        (identity for the straight steps)."""
+        along, rho, rhat, that, on = self._frame(x)
         s_t = (step * that).sum(1, keepdim=True)
         s_r = (step * rhat).sum(1, keepdim=True)
         s_a = (step * self.u).sum(1, keepdim=True)
@@ -585,8 +600,57 @@ class _BondRotations:
         turned = self.a + (along + s_a) * self.u + (rho + s_r) * (
             torch.cos(theta) * rhat + torch.sin(theta) * that
         )
-        use = self.on[:, None] & (rho > self.rho_min) & (theta.abs() <= 1.0)
-        return torch.where(use, turned, x + step)
+        # (a zero step stays exactly zero: the turn would move the pair by rounding)
+        use = on & (theta.abs() <= 1.0) & (step != 0).any(1, keepdim=True)
+        theta = torch.where(use, theta, 0.0)[:, :, None]
+        # Rodrigues: R = cos I + sin [u]x + (1 - cos) u u^T
+        u = self.u
+        zero = torch.zeros_like(u[:, 0])
+        cross = torch.stack([
+            torch.stack([zero, -u[:, 2], u[:, 1]], 1),
+            torch.stack([u[:, 2], zero, -u[:, 0]], 1),
+            torch.stack([-u[:, 1], u[:, 0], zero], 1),
+        ], 1)
+        rot = (torch.cos(theta) * torch.eye(3, dtype=x.dtype) + torch.sin(theta) * cross
+               + (1 - torch.cos(theta)) * u[:, :, None] * u[:, None, :])
+        return torch.where(use, turned, x + step), rot
+
+    def connection(self, x: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
+        """Per-pair 3x3 blocks (P, 3, 3; eV/Å^2) that turn a Cartesian pair Hessian at ``x``
+        into the Hessian in the cylindrical coordinates of :meth:`turn` (arc length at ``x``'s
+        radius, axes in the Cartesian frame of ``x``) given the gradient ``grad`` (P, 3):
+        ``-g_r / rho`` on the tangential diagonal, ``g_t / rho`` between radial and
+        tangential; zero for the pairs that step straight."""
+        _, rho, rhat, that, on = self._frame(x)
+        inv = torch.where(on, 1.0 / torch.clamp(rho, min=1e-12), 0.0)[:, :, None]
+        g_r = (grad * rhat).sum(1)[:, None, None]
+        g_t = (grad * that).sum(1)[:, None, None]
+        tt = that[:, :, None] * that[:, None, :]
+        rt = rhat[:, :, None] * that[:, None, :]
+        return inv * (-g_r * tt + g_t * (rt + rt.transpose(1, 2)))
+
+    def generalized(self, x: torch.Tensor, step: torch.Tensor, rot: torch.Tensor,
+                    grad_new: torch.Tensor) -> torch.Tensor:
+        """The gradient (P, 3) at ``x`` + the turned ``step`` in the cylindrical coordinates of
+        :meth:`turn` at ``x`` (the Cartesian gradient turned back, its tangential part scaled
+        by the radius ratio); the straight pairs' gradient as it is."""
+        _, rho, rhat, that, _ = self._frame(x)
+        back = torch.einsum("pji,pj->pi", rot, grad_new)
+        ratio = (step * rhat).sum(1, keepdim=True) / torch.clamp(rho, min=1e-12)
+        turned = (rot - torch.eye(3, dtype=x.dtype)).abs().amax((1, 2))[:, None] > 0
+        return back + torch.where(turned, ratio, 0.0) * (back * that).sum(1, keepdim=True) * that
+
+
+def _blocks_to_padded(prob: _PairProblem, blocks: torch.Tensor) -> torch.Tensor:
+    """Per-pair 3x3 blocks (P_total, 3, 3) -> block-diagonal padded (B, 3 Pmax, 3 Pmax)."""
+    b, n = prob.g.n_structures, prob.n_max
+    out = blocks.new_zeros(b, n, n, 3, 3)
+    out[prob.pair_batch, prob.local, prob.local] = blocks
+    return out.permute(0, 1, 3, 2, 4).reshape(b, 3 * n, 3 * n)
+
+
+_SKIP = 1e-8
+_TRACE = None
 
 
 def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
@@ -644,9 +708,23 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         moving = active & ~switch
         gp = prob.pad(projected(grad, x))
         held = prob.pad(((x <= lower) | (x >= upper)) & (projected(grad, x) == 0)) > 0
-        step = _newton_step(prob, hc + short + pad_eye, gp, held, 1e-2, moving,
+        model_hessian = hc + short + pad_eye
+        if curvilinear and _ROTATE:
+            # the model in the cylindrical coordinates of the turned steps
+            model_hessian = model_hessian + _blocks_to_padded(
+                prob, curvilinear.connection(x, grad))
+        step = _newton_step(prob, model_hessian, gp, held, 1e-2, moving,
                             torch.ones_like(radius), radius)
-        x_new = torch.clamp(curvilinear(x, step) if curvilinear else x + step, lower, upper)
+        newton = step
+        rot = None
+        if curvilinear:
+            x_turn, rot = curvilinear.turn(x, step)
+            x_new = torch.clamp(x_turn, lower, upper)
+            # a pair moved by the box bound takes the chord in the secant
+            rot = torch.where(((x_new != x_turn).any(1) | (not _ROTATE))[:, None, None],
+                              torch.eye(3, dtype=dtype), rot)
+        else:
+            x_new = torch.clamp(x + step, lower, upper)
         step = x_new - x
         in32 = moving & use32 & ~trying
         in64 = active & ~in32
@@ -671,15 +749,39 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         use32 &= ~trying
         reject = active & ~accept
         # SR1 update of the short-range model
-        s = prob.pad(step)
-        r = prob.pad((g_new - grad) - (gc_new - gc)) - (short @ s[:, :, None]).squeeze(-1)
+        if rot is None:
+            s = prob.pad(step)
+            r = prob.pad((g_new - grad) - (gc_new - gc)) - (short @ s[:, :, None]).squeeze(-1)
+        else:
+            # secant in the cylindrical coordinates of the turned pairs: the step (Newton
+            # step, tangential part the arc) and the short-range gradient in them, less the
+            # connection term of the short-range gradient (the model ``short`` is Cartesian)
+            turned_pair = (rot - torch.eye(3, dtype=dtype)).abs().amax((1, 2)) > 0
+            s_pairs = torch.where(turned_pair[:, None], newton, step)
+            g_short = grad - gc
+            conn = curvilinear.connection(x, g_short)
+            conn = torch.where(turned_pair[:, None, None], conn, 0.0)
+            y = (curvilinear.generalized(x, newton, rot, g_new - gc_new) - g_short
+                 - (conn @ s_pairs[:, :, None]).squeeze(-1))
+            s = prob.pad(s_pairs)
+            r = prob.pad(y) - (short @ s[:, :, None]).squeeze(-1)
         rs = (r * s).sum(1)
         # SR1 from every evaluated step, rejected ones included (measured: updating from
         # accepted steps only needs 2-5x more iterations); skipped when r.s is tiny
         size = torch.linalg.norm(r, dim=1) * torch.linalg.norm(s, dim=1)
-        ok = active & (rs.abs() > 1e-8 * size) & (rs.abs() > 1e-30)
+        ok = active & (rs.abs() > _SKIP * size) & (rs.abs() > 1e-30)
         upd = r[:, :, None] * r[:, None, :] / torch.where(ok, rs, 1.0)[:, None, None]
+        if _TRACE is not None:
+            _TRACE.append(dict(s=s.clone(), r=r.clone(), rs=rs.clone(), ok=ok.clone(), x=x.clone(), active=active.clone(), yc=(g_new - grad) - (gc_new - gc), ys=r + (short @ s[:, :, None]).squeeze(-1),
+                               accept=accept.clone(), newton=newton.clone(), step=step.clone()))
         short = torch.where(ok[:, None, None], short + upd, short)
+        if rot is not None and bool(accept.any()):
+            # the short-range model turns with the accepted pairs
+            turn = torch.eye(3, dtype=dtype).repeat(b, prob.n_max, 1, 1)
+            turn[prob.pair_batch, prob.local] = torch.where(accept[prob.pair_batch, None, None],
+                                                            rot, torch.eye(3, dtype=dtype))
+            blocks = short.reshape(b, prob.n_max, 3, prob.n_max, 3)
+            short = torch.einsum("biac,bicjd,bjed->biaje", turn, blocks, turn).reshape(b, m, m)
         acc_p = accept[prob.pair_batch, None]
         x = torch.where(acc_p, x_new, x)
         grad = torch.where(acc_p, g_new, grad)
