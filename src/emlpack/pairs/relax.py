@@ -13,9 +13,10 @@ Default method (``initial_hessian="coulomb"``): a quasi-Newton on the per-struct
    differences of the gradient ("lumped": per pair the row sum of its short-range couplings)
    and refined by symmetric-rank-one updates from ``y - y_el`` (change of gradient minus change
    of the electrostatic gradient) after every evaluated step;
-3. step ``(H_el + M + mu I) p = -g`` with ``mu`` lifting the smallest eigenvalue to 1e-2 eV/Å^2,
-   in a trust radius (largest pair displacement, at most ``max_step``) that is halved to a
-   rejected step and doubled after an accepted one (Armijo test on the energy);
+3. step ``(H_el + M + mu I) p = -g`` with ``mu`` lifting the smallest eigenvalue to 1e-2 eV/Å^2
+   (model curvatures below ``-mirror_curvature`` are taken by their magnitude instead and
+   left out of ``mu``), in a trust radius (largest pair displacement, at most ``max_step``)
+   that is halved to a rejected step and doubled after an accepted one (Armijo test);
 4. structures not converged after ``newton_after`` iterations (nearly flat modes) finish with
    the exact-Hessian Newton method below;
 5. (``bond_rotations``, molecules) the step is taken in cylindrical coordinates about the axis
@@ -26,7 +27,39 @@ Default method (``initial_hessian="coulomb"``): a quasi-Newton on the per-struct
    along it stretch the pairs off the axis and zig-zag. Measured on the 64-structure benchmark
    (trained model, fmax 1e-4): evaluations sum 1076 -> 1020, max 56 -> 39, the seven
    acetylene structures 306 -> 223 evaluations; same minima (energies within 4e-7 eV at fmax
-   1e-4, 1e-8 eV at fmax 1e-6).
+   1e-4, 1e-8 eV at fmax 1e-6);
+6. (with 5) the model lives in those coordinates: per turned pair radial, arc length and axial
+   (``M`` is Cartesian; the step model adds the connection term of the gradient, ``-g_r/rho``
+   tangential and ``g_t/rho`` radial-tangential, :meth:`_BondRotations.connection`); the SR1
+   secant is the turned step with the new gradient turned back less that term of the
+   short-range gradient, and ``M`` turns with the accepted pairs.
+
+Measured (issue 14, the slow tail; trained model, 64-structure benchmark, fmax 1e-4, 1 thread,
+CPU of the batch in one process, /work/notes-style sweep): the acetylene structures took 25-46
+evaluations. Cause: SR1 from the Cartesian chord of a turned step. A turn by theta has a chord
+with a radial part -rho theta^2/2 that the gradient does not see (the energy is nearly
+symmetric about the axis), so ``r = y - M s`` is radial with ``r.s ~ -k_r rho^2 theta^4/4`` and
+the update takes the whole stiff radial curvature k_r (~70-85 eV/Å^2) off the model: model
+eigenvalues of -50 to -4e5 eV/Å^2 after accepted steps along the soft rotation, the next step
+ran along them to the trust radius and was rejected (every 2nd-3rd tail step; the model's
+Rayleigh quotient along the rejected step -50..-4000 against +30..+90 exact). With 6:
+evaluations sum 1002 -> 922, max 40 -> 26, acetylene 306 -> 226, CPU 0.91 -> 0.80 s (3
+alternated runs). A secant in the turned frame without the connection term learnt a
+rotational curvature of 0.015 instead of 0.05 eV/Å^2 (the short-range gradient alone is not
+small at the minimum) and helped only half the structures. Also fixed: a zero step (the
+float32 -> float64 re-evaluation in place) was turned and moved the pairs by ~1e-17 Å, and
+SR1 read the float32/float64 gradient difference over it as a 1e12 eV/Å^2 curvature (max 46 ->
+40 before 6). Mirroring model curvatures below -1 eV/Å^2 (spurious SR1 curvature that the
+shift sent the step along): sum 922 -> 884, max 26 -> 23. Tried and dropped: SR1 skip threshold
+``|r.s| > c |r||s|`` with c = 1e-4..3e-2 (max 26-31; with the chord secant 1e-3..1e-1 made it
+max 58-91); mirroring every negative curvature (max 58); no shift for models with every
+curvature above 1e-4 or 1e-3 (max 28); skipping SR1 updates that leave a curvature below -1
+along r (max 25, sum 888: as good as the mirror, not both); float32_above 1e-2 / 3e-3 (max 25,
+sum 886-894). Minima: at fmax 1e-6 energies within 3e-11 eV of the previous code's (float64,
+fmax 1e-6) except one acetylene that neither converges below 7.3e-6 eV/Å (flat mode 4.8e-4
+eV/Å^2; same energy; SciPy-style BFGS reaches 1e-7 within 9e-9 eV of it); at fmax 1e-4 within
+6e-8 eV except that structure (1.27e-5 eV, previous code 1.26e-5: what fmax 1e-4 allows along
+a 4.8e-4 eV/Å^2 mode).
 
 Every evaluation holds the SchNet filters of the core-core edges fixed (their lengths do not
 change at fixed cores and cell): computed once per batch (:meth:`emlpack.nn.potential.EMLP.
