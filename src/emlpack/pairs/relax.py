@@ -59,7 +59,12 @@ sum 886-894). Minima: at fmax 1e-6 energies within 3e-11 eV of the previous code
 fmax 1e-6) except one acetylene that neither converges below 7.3e-6 eV/Å (flat mode 4.8e-4
 eV/Å^2; same energy; SciPy-style BFGS reaches 1e-7 within 9e-9 eV of it); at fmax 1e-4 within
 6e-8 eV except that structure (1.27e-5 eV, previous code 1.26e-5: what fmax 1e-4 allows along
-a 4.8e-4 eV/Å^2 mode).
+a 4.8e-4 eV/Å^2 mode). ``benchmarks/relax.py --model trained --threads 1``, 2 runs alternated
+with the previous code at load ~9 on 2 cores: emlpack batch CPU 0.71 / 0.74 s (previous 0.91 /
+0.90), CPU speedup vs SciPy 14.6 / 13.5 (previous 12.3 / 13.0); the wall-time
+``speedup_vs_scipy`` 12.1 / 11.6 (previous 12.4 / 9.0) is dominated by the load (wall 2-3x
+CPU). The tail is now ~0.1 s of the ~0.8 s batch; most of the rest are the float64 iterations
+of the ~40 structures just below ``float32_above``.
 
 Every evaluation holds the SchNet filters of the core-core edges fixed (their lengths do not
 change at fixed cores and cell): computed once per batch (:meth:`emlpack.nn.potential.EMLP.
