@@ -57,6 +57,7 @@ import numpy as np
 import yaml
 
 HERE = Path(__file__).resolve().parent
+ROOT = HERE.parents[1]  # the project
 STAGES = ("train", "evaluate", "dft", "polarizability", "ir", "md", "table", "export")
 
 #: The paper's numbers (emlp-paper.tex): Table 2 (static), Table 3 (dynamic), the MD section
@@ -1306,7 +1307,15 @@ def stage_export(study: Study) -> Path:
     final = study.cfg.get("status") == "final"
     folder = Path(e["dir"]) if e.get("dir") else (
         PRETRAINED_DIR / name if final else study.workdir / "pretrained" / name)
-    files = export_pretrained(models, folder, model_card(results, name, group, len(models)))
+    results_md = Path(study.cfg.get("results_dir", HERE)) / "results.md"
+    try:
+        results_md = results_md.resolve().relative_to(ROOT)
+    except ValueError:
+        pass
+    card = model_card(results, name, group, len(models), results_md)
+    files = export_pretrained(models, folder, card,
+                              notice=None if final else preliminary_notice(results, name, group),
+                              data_path=e.get("data_label"))
     study.work["export"] += 1
     where = "the package" if final and not e.get("dir") else str(folder)
     study.log(f"export: {len(models)} {GROUP_LABEL[group]} models -> {folder} ({where};"
@@ -1314,8 +1323,26 @@ def stage_export(study: Study) -> Path:
     return folder
 
 
-def model_card(result: dict, name: str, group: str, n_models: int) -> str:
-    """The model card (Markdown) of the exported ensemble, from the study's ``results.json``."""
+def preliminary_notice(result: dict, name: str, group: str) -> str:
+    """The line every calculation with a preliminary export reports among its warnings."""
+    d = result["data"]["by_split"]["train"]
+    g = (((result.get("evaluation") or {}).get("test") or {}).get("groups") or {}).get(group)
+    errors = ""
+    if g:
+        mae = g["static"]["mae"]
+        errors = (f"; on unseen test molecules its core-force MAE is"
+                  f" {1000 * mae['forces']['mean']:.0f} meV/Å and its energy MAE"
+                  f" {1000 * mae['energy']['mean']:.0f} meV/atom (the paper's: 52 meV/Å,"
+                  " 5 meV/atom)")
+    return (f"{name} is a preliminary ensemble, trained on {d['configurations']} configurations"
+            f" of {d['molecules']} molecules while its data set is being labeled{errors}:"
+            f" check important results with DFT (its card: emlpack/pretrained/{name}/card.md)")
+
+
+def model_card(result: dict, name: str, group: str, n_models: int,
+               results_md: str | Path = "examples/eqm7/results.md") -> str:
+    """The model card (Markdown) of the exported ensemble, from the study's ``results.json``
+    (``results_md``: where its tables are, quoted in the card)."""
     d = result["data"]
     by = d["by_split"]
     ev = (result.get("evaluation") or {}).get("test") or {}
@@ -1327,7 +1354,16 @@ def model_card(result: dict, name: str, group: str, n_models: int) -> str:
     lines = [
         f"# {name}: an eMLP ensemble trained on mini-eQM7", "",
         f"Status: **{result['status']}** (generated {result['generated']} by"
-        " `examples/eqm7/run_study.py export`).", "",
+        " `examples/eqm7/run_study.py export`).", ""]
+    if result["status"] != "final":
+        lines += [
+            f"**Preliminary.** Trained on the {d['configurations']} configurations labeled so"
+            " far, a fraction of the campaign's target (1500 configurations of 250 molecules),"
+            " with a small architecture and short training on 2 CPU cores. Its errors below are"
+            " several times the paper's: use it to explore and to set up workflows, check what"
+            " matters with DFT, and watch the ensemble spread and the warnings. The final"
+            " ensemble replaces it when the data set is complete.", ""]
+    lines += [
         "## Level of theory", "",
         "Labels: PBE0/aug-cc-pVTZ with density fitting (aug-cc-pVTZ-JKFIT), restricted"
         " Kohn-Sham, PySCF; energies, forces under random homogeneous fields up to 0.01 au,"
@@ -1368,8 +1404,8 @@ def model_card(result: dict, name: str, group: str, n_models: int) -> str:
         if pol:
             lines.append(f"| polarizability [bohr³] | {_ms(pol['mae'], 1, 2)} |"
                          f" {_ms(pol['median'], 1, 2)} |")
-        lines += ["", "Mean (± std) over the models; the paper's values and the"
-                  " non-augmented models are in `examples/eqm7/results.md`."]
+        lines += ["", "Mean (± std) over the models; the full tables with the paper's values"
+                  f" beside ours: `{results_md}`."]
         if dyn:
             lines.append(f"Error rate of the pair relaxations: {_ms(dyn['error_rate'], 100)} %.")
     else:
@@ -1385,10 +1421,10 @@ def model_card(result: dict, name: str, group: str, n_models: int) -> str:
         "", "## Domain", "",
         "Neutral closed-shell molecules of H, C, N and O with up to 7 heavy atoms, near their"
         " equilibrium geometry (thermal distortions up to ~800 K) and in homogeneous fields up"
-        " to 0.01 au (0.51 V/Å). Other elements are refused; larger or charged molecules,"
-        " crystals and reactive geometries are outside the training data: the calculator warns"
-        " on unknown elements, a large ensemble spread, failed pair relaxations and changed"
-        " bonding.", "",
+        " to 0.01 au (0.51 V/Å). Other elements are refused (one line naming them); larger or"
+        " charged molecules, crystals and reactive geometries are outside the training data:"
+        " the calculator warns on a large ensemble spread and changed bonding, and a failed"
+        " pair relaxation is an error naming the member.", "",
         "## Energies", "",
         "Total energies are on the DFT scale: the DFT energies of the four reference hydrides"
         " (H2, CH4, NH3, H2O at the same level) are added back to the model's relative energy,"

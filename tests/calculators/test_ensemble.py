@@ -215,3 +215,33 @@ def test_export_pretrained_float32_round_trip(checkpoints, tmp_path):
 
         bare = _save(load_member(paths[0]).model, tmp_path / "bare.pt")
         export_pretrained([bare], tmp_path / "x", "")
+
+
+def test_a_models_notice_is_in_every_result_and_logged_once(checkpoints, tmp_path, caplog):
+    """A preliminary export's notice (its metadata) is among the warnings of every calculation
+    and of the command-line JSON, and is logged once per calculator, not at every step."""
+    import json
+    import logging
+
+    from emlpack.cli import main
+
+    _, paths = checkpoints
+    root = tmp_path / "pretrained"
+    notice = "toy is a preliminary ensemble: check important results with DFT"
+    export_pretrained(paths, root / "toy", "# toy\n", notice=notice)
+    ensemble = load_pretrained("toy", root=root)
+    assert ensemble.notices == [notice]
+    atoms = structure_to_atoms(_ethanol())
+    atoms.calc = EMLPCalculator(ensemble, relax_pairs=False)
+    with caplog.at_level(logging.WARNING):
+        for shift in (0.0, 0.01):
+            atoms.positions[0, 0] += shift
+            atoms.get_potential_energy()
+            assert notice in atoms.calc.warnings
+    assert sum(notice in r.getMessage() for r in caplog.records) == 1
+    out = tmp_path / "pol.json"
+    xyz = tmp_path / "ethanol.xyz"
+    atoms.calc = None
+    atoms.write(xyz)
+    assert main(["polarizability", str(root / "toy"), str(xyz), "-o", str(out), "--quiet"]) == 0
+    assert notice in json.loads(out.read_text())["warnings"]

@@ -64,6 +64,7 @@ def test_demo_starts_with_an_installed_pretrained_model(tmp_path, monkeypatch):
     assert (out / step["ir_plot"]).exists()
     text = "\n".join(_pretrained_lines(step))
     assert "Isotropic polarizability" in text and "emlp ir mini-eqm7 --smiles C" in text
+    assert f"{freqs[-1]:.0f} ± " in text            # the frequencies with their spread
 
 
 def test_report_names_configurations_by_key_and_formula(tmp_path):

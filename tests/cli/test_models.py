@@ -48,9 +48,12 @@ def test_optimize_reports_the_dft_scale(referenced_model, tmp_path):
 
 
 def test_pretrained_names_and_single_model_commands_give_one_line(referenced_model, tmp_path,
-                                                                   capsys):
+                                                                   capsys, monkeypatch):
+    from emlpack import pretrained
     from emlpack.cli import main
 
+    # as in a copy of emlpack without the shipped model
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "none")
     water = write_xyz(tmp_path / "w.xyz", water_rows(4))
     folder = tmp_path / "ensemble"
     folder.mkdir()

@@ -185,16 +185,20 @@ def test_export_ships_the_augmented_ensemble_with_its_card(study_run):
     from emlpack.pretrained import PRETRAINED_DIR, model_card
 
     mod, cfg, study, root, _ = study_run
-    assert not (PRETRAINED_DIR / "mini-eqm7").exists() or cfg["status"] == "final"
     folder = root / "work" / "pretrained"
     ensemble = load_pretrained("mini-eqm7", root=folder)
     assert len(ensemble.members) == 2
     card = model_card("mini-eqm7", folder)
+    shipped = PRETRAINED_DIR / "mini-eqm7" / "card.md"
+    assert not shipped.exists() or shipped.read_text() != card  # the package is untouched
     result = json.loads((root / "results" / "results.json").read_text())
     mae = result["evaluation"]["test"]["groups"]["aug"]["static"]["mae"]["forces"]["mean"]
     assert f"{1000 * mae:.1f}" in card            # the measured core-force MAE is quoted
     assert "PBE0/aug-cc-pVTZ" in card and "How to cite" in card and "Domain" in card
-    assert "Status: **preliminary**" in card
+    assert "Status: **preliminary**" in card and "**Preliminary.**" in card
+    # and every calculation with it says so, with the measured error
+    assert all(m.notice and "preliminary" in m.notice and f"{1000 * mae:.0f} meV/Å" in m.notice
+               for m in ensemble.members)
 
 
 def test_dft_plan_finishes_the_figure_molecules_then_polarizabilities_then_hessians():

@@ -128,6 +128,7 @@ class EMLPCalculator(Calculator):
         self.relax_result: RelaxResult | None = None
         self.relax_results: list[RelaxResult] = []
         self.warnings: list[str] = []
+        self._notices_logged = False
         self._last_field: np.ndarray | None = None
         self._given_pairs: np.ndarray | None = None
         self._warm: tuple | None = None  # (numbers, cores, cell or None, pairs per member)
@@ -213,7 +214,7 @@ class EMLPCalculator(Calculator):
         super().calculate(atoms, properties or ["energy"], system_changes)
         atoms = self.atoms
         field = self._field_of(atoms)
-        warnings: list[str] = []
+        warnings: list[str] = list(self.ensemble.notices)  # logged once, at the first call
         unknown = self.ensemble.unknown_elements(atoms.numbers)
         if unknown:
             warnings.append(f"element(s) Z={unknown} are outside the models' training set"
@@ -282,7 +283,10 @@ class EMLPCalculator(Calculator):
         warnings += self._spread_warnings(len(atoms))
         warnings += self._bonding_warnings(atoms)
         for text in warnings:
+            if text in self.ensemble.notices and self._notices_logged:
+                continue
             log.warning("%s: %s", atoms.get_chemical_formula(), text)
+        self._notices_logged = True
         self.warnings = warnings
         self._last_field = field.copy()
         self._warm = (atoms.numbers.copy(), atoms.positions.copy(),

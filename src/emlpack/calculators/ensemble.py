@@ -48,12 +48,15 @@ class ModelMember:
         reference: the training reference, or None (e.g. a converted or untrained model).
         elements: atomic numbers of the cores in the training set, or None when unknown.
         source: where it was loaded from.
+        notice: what every calculation with this model should say, from its metadata (e.g. a
+            preliminary pretrained model's measured errors), or None.
     """
 
     model: EMLP
     reference: object | None = None
     elements: tuple[int, ...] | None = None
     source: str = "<memory>"
+    notice: str | None = None
     _hydride_delta: np.ndarray | None = field(default=None, repr=False)
 
     def hydride_delta(self) -> np.ndarray | None:
@@ -92,7 +95,7 @@ def load_member(path: str | Path, dtype: torch.dtype = torch.float64) -> ModelMe
     if elements is None and isinstance(reference, HydrideReference):
         elements = (1, 6, 7, 8)
     return ModelMember(model, reference, None if elements is None else tuple(map(int, elements)),
-                       str(path))
+                       str(path), meta.get("notice") or None)
 
 
 class ModelEnsemble:
@@ -125,6 +128,11 @@ class ModelEnsemble:
         sets = [set(m.elements) for m in self.members if m.elements is not None]
         return set.intersection(*sets) if sets else None
 
+    @property
+    def notices(self) -> list[str]:
+        """The members' notices (e.g. a preliminary model's measured errors), each once."""
+        return list(dict.fromkeys(m.notice for m in self.members if m.notice))
+
     def unknown_elements(self, numbers) -> list[int]:
         """Atomic numbers in ``numbers`` outside the training set (empty when unknown)."""
         known = self.elements
@@ -136,7 +144,7 @@ class ModelEnsemble:
         """A copy with every model in ``dtype`` and evaluation mode (the members given are not
         changed)."""
         out = [ModelMember(for_evaluation(m.model, dtype), m.reference, m.elements, m.source,
-                           m._hydride_delta) for m in self.members]
+                           m.notice, m._hydride_delta) for m in self.members]
         return ModelEnsemble(out, self.name)
 
 

@@ -145,7 +145,8 @@ def prepare(args, periodic: bool | None, command: str) -> Prepared:
     members = load_members(args.model)
     s, where = read_structure(args, members[0].model, log, periodic=periodic, command=command)
     s, field_info = apply_field(s, args, where, log)
-    warnings: list[str] = []
+    # what the models' files ask every result to say (e.g. a preliminary pretrained ensemble)
+    warnings: list[str] = list(dict.fromkeys(m.notice for m in members if m.notice))
     structures, infos = [], []
     for k, member in enumerate(members):
         if len(members) > 1:

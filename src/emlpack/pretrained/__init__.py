@@ -43,6 +43,8 @@ def model_files(name: str, root: Path | None = None) -> list[Path]:
 def available(root: Path | None = None) -> list[str]:
     """Names of the pretrained models installed with this copy of emlpack."""
     root = root or PRETRAINED_DIR
+    if not root.is_dir():
+        return []
     return sorted(p.name for p in root.iterdir() if p.is_dir() and model_files(p.name, root))
 
 
@@ -79,10 +81,14 @@ def model_card(name: str, root: Path | None = None) -> str:
 
 
 def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: str,
-                      dtype: torch.dtype = torch.float32) -> list[Path]:
+                      dtype: torch.dtype = torch.float32, notice: str | None = None,
+                      data_path: str | None = None) -> list[Path]:
     """Write trained checkpoints as a shippable pretrained model: ``folder/model-K.pt`` with
     weights in ``dtype``, only the metadata a user needs (reference, elements, model config,
-    data path and split), and ``folder/card.md``. Returns the written files."""
+    data path and split), and ``folder/card.md``. ``notice``: a line every calculation with
+    these models reports among its warnings (e.g. that the ensemble is preliminary, with its
+    measured errors); ``data_path``: how the metadata names the training data (default: the
+    checkpoint's own, which may be a local path). Returns the written files."""
     from emlpack.nn.checkpoint import load_model, read_checkpoint, save_model
 
     folder = Path(folder)
@@ -97,6 +103,10 @@ def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: s
         model = load_model(path, dtype)
         out = {key: meta[key] for key in keep if key in meta}
         out["source_checkpoint"] = Path(path).name
+        if notice:
+            out["notice"] = notice
+        if data_path:
+            out["data_path"] = data_path
         written.append(save_model(model, folder / f"model-{k}.pt", out))
     card_path = folder / "card.md"
     write_text_atomic(card_path, card)
