@@ -828,13 +828,19 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         ok = active & (rs.abs() > 1e-8 * size) & (rs.abs() > 1e-30)
         upd = r[:, :, None] * r[:, None, :] / torch.where(ok, rs, 1.0)[:, None, None]
         short = torch.where(ok[:, None, None], short + upd, short)
-        if rot is not None and bool(accept.any()):
-            # the short-range model turns with the accepted pairs
-            turn = torch.eye(3, dtype=dtype).repeat(b, prob.n_max, 1, 1)
-            turn[prob.pair_batch, prob.local] = torch.where(accept[prob.pair_batch, None, None],
-                                                            rot, torch.eye(3, dtype=dtype))
-            blocks = short.reshape(b, prob.n_max, 3, prob.n_max, 3)
-            short = torch.einsum("biac,bicjd,bjed->biaje", turn, blocks, turn).reshape(b, m, m)
+        if rot is not None:
+            # the short-range model turns with the accepted pairs (only the structures with a
+            # turned pair: the others' rotations are the identity)
+            turning = accept & (segment_sum(turned_pair.to(dtype), prob.pair_batch, b) > 0)
+            ks = torch.nonzero(turning).squeeze(1)
+            if len(ks):
+                rows = turning[prob.pair_batch]
+                turn = torch.eye(3, dtype=dtype).repeat(len(ks), prob.n_max, 1, 1)
+                new_index = torch.cumsum(turning.long(), 0) - 1
+                turn[new_index[prob.pair_batch[rows]], prob.local[rows]] = rot[rows]
+                blocks = short[ks].reshape(len(ks), prob.n_max, 3, prob.n_max, 3)
+                short[ks] = torch.einsum("biac,bicjd,bjed->biaje", turn, blocks,
+                                         turn).reshape(len(ks), m, m)
         acc_p = accept[prob.pair_batch, None]
         x = torch.where(acc_p, x_new, x)
         grad = torch.where(acc_p, g_new, grad)
