@@ -539,7 +539,11 @@ def _setup(model, structures, bounds, dtype=torch.float64):
             upper[sel] = torch.as_tensor(np.asarray(bnd[1]), dtype=dtype).reshape(-1, 3)
         x = torch.clamp(x, lower, upper)
 
+    bounded = bool(torch.isfinite(lower).any() or torch.isfinite(upper).any())
+
     def projected(grad: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        if not bounded:
+            return grad
         at_low = (x <= lower) & (grad > 0)
         at_up = (x >= upper) & (grad < 0)
         return torch.where(at_low | at_up, 0.0, grad)
@@ -549,7 +553,8 @@ def _setup(model, structures, bounds, dtype=torch.float64):
 
 def _newton_step(prob, hessian, gp, held, floor, active, alpha, max_step, mirror=None):
     """Regularised projected-Newton step: coordinates held at a bound by the gradient are
-    fixed (rows/columns replaced by the identity), the model is shifted to curvature >= floor,
+    fixed (rows/columns replaced by the identity; ``held`` None: none), the model is shifted
+    to curvature >= floor,
     the longest pair displacement capped to ``max_step`` (float or (B,)) and scaled by
     ``alpha`` (B,). With ``mirror`` (eV/Å^2): model curvatures below ``-mirror`` are replaced
     by their magnitude (a descent step that goes no further along them than along a positive
@@ -557,10 +562,13 @@ def _newton_step(prob, hessian, gp, held, floor, active, alpha, max_step, mirror
     dtype = hessian.dtype
     # only the active structures (converged ones would cost an eigendecomposition each)
     idx = torch.nonzero(active).squeeze(1)
-    free = (~held[idx]).to(dtype)
-    reduced = hessian[idx] * free[:, :, None] * free[:, None, :] + torch.diag_embed(
-        held[idx].to(dtype)
-    )
+    if held is None:
+        reduced = hessian[idx]
+    else:
+        free = (~held[idx]).to(dtype)
+        reduced = hessian[idx] * free[:, :, None] * free[:, None, :] + torch.diag_embed(
+            held[idx].to(dtype)
+        )
     rhs = gp[idx][:, :, None]
     # models with every curvature above the floor need no shift: a Cholesky solve (the
     # factorisation of model - floor proves it) instead of an eigendecomposition (measured on
@@ -635,7 +643,15 @@ class _BondRotations:
 
     def _frame(self, x: torch.Tensor):
         """Per pair: distance along the axis (P, 1), radius (P, 1), radial and tangential unit
-        vectors (P, 3), and whether the pair turns (P, 1)."""
+        vectors (P, 3), and whether the pair turns (P, 1) (kept for the last ``x`` object: the
+        relaxation asks for it several times per iteration)."""
+        cached = getattr(self, "_cache", None)
+        if cached is not None and cached[0] is x and cached[1] == x._version:
+            return cached[2]
+        self._cache = (x, x._version, self._compute_frame(x))
+        return self._cache[2]
+
+    def _compute_frame(self, x: torch.Tensor):
         rel = x - self.a
         along = (rel * self.u).sum(1, keepdim=True)
         perp = rel - along * self.u
@@ -712,6 +728,7 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
     dtype = torch.float64
     g, prob, x, lower, upper, projected = _setup(model, structures, bounds, dtype)
     b = g.n_structures
+    bounded = bool(torch.isfinite(lower).any() or torch.isfinite(upper).any())
     coulomb = _CoulombPairs(model, prob)
     # float32 phase: structures with a pair force above opts.float32_above (measured on the
     # trained benchmark model: float32 energy+gradient 2.5x cheaper, gradient error 2e-5 eV/Å,
@@ -766,7 +783,9 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         switch = active & ~use32 & ~exact64
         moving = active & ~switch
         gp = prob.pad(projected(grad, x))
-        held = prob.pad(((x <= lower) | (x >= upper)) & (projected(grad, x) == 0)) > 0
+        held = None
+        if bounded:
+            held = prob.pad(((x <= lower) | (x >= upper)) & (projected(grad, x) == 0)) > 0
         model_hessian = hc + short + pad_eye
         if curvilinear:
             # the model in the cylindrical coordinates of the turned steps
@@ -777,13 +796,14 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         newton = step
         rot = None
         if curvilinear:
-            x_turn, rot = curvilinear.turn(x, step)
-            x_new = torch.clamp(x_turn, lower, upper)
-            # a pair moved by the box bound takes the chord in the secant
-            rot = torch.where((x_new != x_turn).any(1)[:, None, None],
-                              torch.eye(3, dtype=dtype), rot)
+            x_new, rot = curvilinear.turn(x, step)
+            if bounded:
+                x_turn, x_new = x_new, torch.clamp(x_new, lower, upper)
+                # a pair moved by the box bound takes the chord in the secant
+                rot = torch.where((x_new != x_turn).any(1)[:, None, None],
+                                  torch.eye(3, dtype=dtype), rot)
         else:
-            x_new = torch.clamp(x + step, lower, upper)
+            x_new = torch.clamp(x + step, lower, upper) if bounded else x + step
         step = x_new - x
         in32 = moving & use32 & ~trying
         in64 = active & ~in32
