@@ -64,7 +64,7 @@ with the previous code at load ~9 on 2 cores: emlpack batch CPU 0.71 / 0.74 s (p
 0.90), CPU speedup vs SciPy 14.6 / 13.5 (previous 12.3 / 13.0); the wall-time
 ``speedup_vs_scipy`` 12.1 / 11.6 (previous 12.4 / 9.0) is dominated by the load (wall 2-3x
 CPU). The tail is now ~0.1 s of the ~0.8 s batch; most of the rest are the float64 iterations
-of the ~40 structures just below ``float32_above``.
+of the ~40 structures just below ``float32_above`` (then 3e-2 eV/Å; see below).
 
 Every evaluation holds the SchNet filters of the core-core edges fixed (their lengths do not
 change at fixed cores and cell): computed once per batch (:meth:`emlpack.nn.potential.EMLP.
@@ -76,16 +76,53 @@ Measured (issue 14; one process, 1 thread): on the small trained benchmark model
 is ~93 % of the pair Hessian's norm (with the random paper-size fixture weights 0.2-0.9 %), so
 the lumped start matters: 12.5 instead of 27-30 median evaluations; median 10-13 evaluations
 (3 of them the lumped start) vs SciPy BFGS's 46.5 on the 64-structure relaxation benchmark.
-Float32 start (``float32_above``, default 3e-2 eV/Å; batches of at least ``float32_min_pairs``
-pairs, smaller ones are dispatch-bound and gain nothing): while a structure's largest pair force
-is above it, its evaluations (start, lumped start, iterations) are float32 (2.5x cheaper on the
-trained model; Armijo test with an allowance of 1e-6 |E| for the float32 energy); it then goes
-on in float64 as before (its first float64 step is accepted when it lowers the pair-gradient
-norm, else it is re-evaluated in float64 where it is), so the minima are float64 minima.
-Measured on the 64-structure benchmark (fmax 1e-4, 1 thread): energies within 1e-7 eV of float64
-throughout, median 13 evaluations as before, CPU ~1.2 s -> ~0.95 s at load ~9 (noisy); an
+Float32 phase (``float32_above``, default 3e-4 eV/Å, or ``fmax`` when larger; batches of at
+least ``float32_min_pairs`` pairs, smaller ones are dispatch-bound and gain nothing): while a
+structure's largest pair force is above it, its evaluations (start, lumped start, iterations) are
+float32 (2.5x cheaper on the trained model; Armijo test with an allowance of 1e-6 |E| for the
+float32 energy, and a step whose predicted decrease is below that allowance is accepted when it
+lowers the pair-gradient norm); it then goes on in float64 as before (its first float64 step is
+accepted when it lowers the pair-gradient norm, else it is re-evaluated in float64 where it
+is), so the minima are float64 minima. When the structures still in float32 hold fewer than
+``float32_min_pairs`` pairs they all go on in float64 (one model call per iteration instead of
+two). Measured on the 64-structure benchmark (fmax 1e-4, 1 thread): energies within 1e-7 eV of
+float64 throughout, median 13 evaluations as before, CPU ~1.2 s -> ~0.95 s at load ~9 (noisy); an
 earlier float32 phase with the plain float64 Armijo test rejected good steps near the minimum
 and cost more than it saved.
+
+Measured (issue 14, float32 down to 3e-4 eV/Å; same benchmark, CPU of the batch in one process,
+medians of 6-8 alternated runs at load 5-9): with ``float32_above`` 3e-2 the ~40 structures just
+below it took 4-6 float64 iterations each (0.03-0.06 s per batched float64 call, ~0.39 of the
+0.84 s batch). The float32 gradient is within 1.3e-5 eV/Å (pair norm; median 2.9e-6) of float64
+at the minima and its differences within 2e-5 eV/Å, so float32 steps stay good to ~3e-4 eV/Å;
+but its energy (error ~7e-6 eV) no longer resolves the decrease there (a Newton step's ~g^2/k is
+1e-6-1e-8 eV), so steps were rejected on noise: the gradient-norm test for those. Then nearly
+every structure needs a single float64 evaluation (its first float64 step from below 3e-4
+converges): ``float32_above`` 3e-2 / 1e-3 / 3e-4 CPU 0.75 / 0.65 / 0.59 s (medians of 3
+alternated runs, before the gradient-norm test; evaluations 883 / 899 / 906, with the test 896 /
+899 for 1e-3 / 3e-4, CPU 0.79 / 0.79 vs 0.94 s for 3e-2 in 6 runs at a higher load; 3e-2 -> 3e-4
+0.69 -> 0.61 s in 8 runs at load ~5); 2e-4 919 evaluations, no faster; 1e-4 / 7e-5 / 4e-5 949 /
+968 / 1008 (float32 steps below its noise). The float32 tail leaving together: 33 -> 25 model
+calls, evaluations 894, max 22. Turning the short-range model only for the accepted structures
+with a turned pair, no box projection without bounds, the bond-rotation frame once per iterate:
+per-iteration overhead outside the model ~6 ms (coulomb derivatives 1.5, Newton solve 1.3, model
+assembly and connection 0.7, SR1 secant 0.7 ms), within the noise. ``benchmarks/relax.py --model
+trained --threads 1``, 2 runs alternated with the previous code (load ~5): emlpack batch CPU
+0.65 / 0.62 s (previous 0.74 / 0.84), CPU speedup vs SciPy 17.2 / 18.1 (previous 13.6 / 13.9),
+wall ``speedup_vs_scipy`` 15.5 / 16.8 (previous 13.3 / 14.8). Minima: at fmax 1e-6 within 9e-11
+eV of the float64 reference except the flat acetylene (as before), at fmax 1e-4 within 6.1e-8 eV
+except it (1.27e-5 eV, as before). Tried and dropped: deferring the float64 steps until the
+float32 phase is over (one batched float64 call: 8 instead of 15 float64 calls, more loop
+iterations; CPU alike); compacting the evaluated batch at 90 % / 100 % of the members instead of
+75 % (alike); a larger lumped-start difference step 3e-3 / 1e-2 / 3e-2 Å (evaluations 903 / 922
+/ 915); float32 edge lengths from float64 positions with float64 radial basis (gradient error
+1.3e-5 -> 6.4e-6 eV/Å, energy error unchanged: the network's rounding dominates); flushing
+denormals (no change). Where the batch goes now (~0.62 s): ~0.09 s the start and lumped start (4
+float32 calls of the whole batch), ~0.38 s the model in the iterations (float32 ~0.23, float64
+~0.11-0.15 of it; calls of 1-3 structures cost 3-4 ms each, dispatch-bound), ~0.12 s the loop
+outside the model, ~0.03 s setup. A float32 evaluation is ~20 ms for the 64 structures, mostly
+elementwise passes over the 4544 free edges x 64 filters (softplus ~1 ms per call) and their
+backward.
 
 Tried and dropped (issue 14): SchNet filters of the free edges by cubic Hermite interpolation
 from a table of exact values and slopes (spacing 0.002 Å: 2e-11 / 4.5e-10 of max|W| on the
