@@ -117,12 +117,14 @@ iterations; CPU alike); compacting the evaluated batch at 90 % / 100 % of the me
 75 % (alike); a larger lumped-start difference step 3e-3 / 1e-2 / 3e-2 Å (evaluations 903 / 922
 / 915); float32 edge lengths from float64 positions with float64 radial basis (gradient error
 1.3e-5 -> 6.4e-6 eV/Å, energy error unchanged: the network's rounding dominates); flushing
-denormals (no change). Where the batch goes now (~0.62 s): ~0.09 s the start and lumped start (4
-float32 calls of the whole batch), ~0.38 s the model in the iterations (float32 ~0.23, float64
-~0.11-0.15 of it; calls of 1-3 structures cost 3-4 ms each, dispatch-bound), ~0.12 s the loop
-outside the model, ~0.03 s setup. A float32 evaluation is ~20 ms for the 64 structures, mostly
-elementwise passes over the 4544 free edges x 64 filters (softplus ~1 ms per call) and their
-backward.
+denormals (no change); the float32 tail leaving below 64 / 32 / 1 pairs instead of 128 (alike);
+the Coulomb pair derivatives scattered from index lists built once (1.8 -> 1.4 ms per call for
+the whole batch, 0.6 -> 0.7 ms for 3 structures: no net gain). Where the batch goes now (~0.62
+s): ~0.09 s the start and lumped start (4 float32 calls of the whole batch), ~0.38 s the model
+in the iterations (float32 ~0.23, float64 ~0.11-0.15 of it; calls of 1-3 structures cost 3-4 ms
+each, dispatch-bound), ~0.12 s the loop outside the model, ~0.03 s setup. A float32 evaluation
+is ~20 ms for the 64 structures, mostly elementwise passes over the 4544 free edges x 64 filters
+(softplus ~1 ms per call) and their backward.
 
 Tried and dropped (issue 14): SchNet filters of the free edges by cubic Hermite interpolation
 from a table of exact values and slopes (spacing 0.002 Å: 2e-11 / 4.5e-10 of max|W| on the
