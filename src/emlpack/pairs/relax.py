@@ -857,15 +857,20 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         n_eval += active.long()
         iters += moving.long()
         slope = segment_sum((grad * step).sum(1), prob.pair_batch, b)
-        noise = torch.where(in32, 1e-6, 1e-12) * energy.abs()
-        accept = switch | moving & ~trying & (e_new <= energy + 1e-4 * slope + noise)
-        # float32 steps whose predicted decrease is below the float32 energy's resolution
-        # (near the minimum) are accepted when they lower the pair-gradient norm instead
-        flat = in32 & (slope.abs() < noise)
-        if bool((trying | flat).any()):
+        # structures sent to float64 above leave32 (the small float32 tail) compare their
+        # float64 energy with the float32 one, with the float32 allowance
+        forced = trying & (fmax >= leave32)
+        noisy = in32 | forced
+        noise = torch.where(noisy, 1e-6, 1e-12) * energy.abs()
+        accept = switch | (moving & ~trying | forced) & (e_new <= energy + 1e-4 * slope + noise)
+        # steps whose predicted decrease is below the float32 energy's resolution (near the
+        # minimum) are accepted when they lower the pair-gradient norm instead
+        flat = noisy & (slope.abs() < noise)
+        by_norm = trying & ~forced | flat
+        if bool(by_norm.any()):
             norm_new = segment_sum((projected(g_new, x_new) ** 2).sum(1), prob.pair_batch, b)
             norm_old = segment_sum((projected(grad, x) ** 2).sum(1), prob.pair_batch, b)
-            accept |= (trying | flat) & (norm_new < norm_old)
+            accept |= by_norm & (norm_new < norm_old)
         exact64 |= switch | trying & accept
         use32 &= ~trying
         reject = active & ~accept
