@@ -111,22 +111,23 @@ per-iteration overhead outside the model ~6 ms (coulomb derivatives 1.5, Newton 
 assembly and connection 0.7, SR1 secant 0.7 ms), within the noise. ``benchmarks/relax.py --model
 trained --threads 1``, 2 runs alternated with the previous code (load ~5): emlpack batch CPU
 0.65 / 0.62 s (previous 0.74 / 0.84), CPU speedup vs SciPy 17.2 / 18.1 (previous 13.6 / 13.9),
-wall ``speedup_vs_scipy`` 15.5 / 16.8 (previous 13.3 / 14.8). Minima: at fmax 1e-6 within 9e-11
-eV of the float64 reference except the flat acetylene (as before), at fmax 1e-4 within 6.1e-8 eV
-except it (1.27e-5 eV, as before). Tried and dropped: deferring the float64 steps until the
-float32 phase is over (one batched float64 call: 8 instead of 15 float64 calls, more loop
-iterations; CPU alike); compacting the evaluated batch at 90 % / 100 % of the members instead of
-75 % (alike); a larger lumped-start difference step 3e-3 / 1e-2 / 3e-2 Å (evaluations 903 / 922
-/ 915); float32 edge lengths from float64 positions with float64 radial basis (gradient error
-1.3e-5 -> 6.4e-6 eV/Å, energy error unchanged: the network's rounding dominates); flushing
-denormals (no change); the float32 tail leaving below 64 / 32 / 1 pairs instead of 128 (alike);
-the Coulomb pair derivatives scattered from index lists built once (1.8 -> 1.4 ms per call for
-the whole batch, 0.6 -> 0.7 ms for 3 structures: no net gain). Where the batch goes now (~0.62
-s): ~0.09 s the start and lumped start (4 float32 calls of the whole batch), ~0.38 s the model
-in the iterations (float32 ~0.23, float64 ~0.11-0.15 of it; calls of 1-3 structures cost 3-4 ms
-each, dispatch-bound), ~0.12 s the loop outside the model, ~0.03 s setup. A float32 evaluation
-is ~20 ms for the 64 structures, mostly elementwise passes over the 4544 free edges x 64 filters
-(softplus ~1 ms per call) and their backward.
+wall ``speedup_vs_scipy`` 15.5 / 16.8 (previous 13.3 / 14.8); a third pair with the final code
+(float32 tail's Armijo test): CPU 0.58 s (previous 0.86), CPU speedup 19.3 (13.4), wall 19.1
+(10.8). Minima: at fmax 1e-6 within 9e-11 eV of the float64 reference except the flat acetylene
+(as before), at fmax 1e-4 within 6.1e-8 eV except it (1.27e-5 eV, as before). Tried and dropped:
+deferring the float64 steps until the float32 phase is over (one batched float64 call: 8 instead
+of 15 float64 calls, more loop iterations; CPU alike); compacting the evaluated batch at 90 % /
+100 % of the members instead of 75 % (alike); a larger lumped-start difference step 3e-3 / 1e-2
+/ 3e-2 Å (evaluations 903 / 922 / 915); float32 edge lengths from float64 positions with float64
+radial basis (gradient error 1.3e-5 -> 6.4e-6 eV/Å, energy error unchanged: the network's
+rounding dominates); flushing denormals (no change); the float32 tail leaving below 64 / 32 / 1
+pairs instead of 128 (alike); the Coulomb pair derivatives scattered from index lists built once
+(1.8 -> 1.4 ms per call for the whole batch, 0.6 -> 0.7 ms for 3 structures: no net gain). Where
+the batch goes now (~0.62 s): ~0.09 s the start and lumped start (4 float32 calls of the whole
+batch), ~0.38 s the model in the iterations (float32 ~0.23, float64 ~0.11-0.15 of it; calls of
+1-3 structures cost 3-4 ms each, dispatch-bound), ~0.12 s the loop outside the model, ~0.03 s
+setup. A float32 evaluation is ~20 ms for the 64 structures, mostly elementwise passes over the
+4544 free edges x 64 filters (softplus ~1 ms per call) and their backward.
 
 Tried and dropped (issue 14): SchNet filters of the free edges by cubic Hermite interpolation
 from a table of exact values and slopes (spacing 0.002 Å: 2e-11 / 4.5e-10 of max|W| on the
