@@ -64,7 +64,7 @@ with the previous code at load ~9 on 2 cores: emlpack batch CPU 0.71 / 0.74 s (p
 0.90), CPU speedup vs SciPy 14.6 / 13.5 (previous 12.3 / 13.0); the wall-time
 ``speedup_vs_scipy`` 12.1 / 11.6 (previous 12.4 / 9.0) is dominated by the load (wall 2-3x
 CPU). The tail is now ~0.1 s of the ~0.8 s batch; most of the rest are the float64 iterations
-of the ~40 structures just below ``float32_above``.
+of the ~40 structures just below ``float32_above`` (then 3e-2 eV/Å; see below).
 
 Every evaluation holds the SchNet filters of the core-core edges fixed (their lengths do not
 change at fixed cores and cell): computed once per batch (:meth:`emlpack.nn.potential.EMLP.
@@ -76,16 +76,58 @@ Measured (issue 14; one process, 1 thread): on the small trained benchmark model
 is ~93 % of the pair Hessian's norm (with the random paper-size fixture weights 0.2-0.9 %), so
 the lumped start matters: 12.5 instead of 27-30 median evaluations; median 10-13 evaluations
 (3 of them the lumped start) vs SciPy BFGS's 46.5 on the 64-structure relaxation benchmark.
-Float32 start (``float32_above``, default 3e-2 eV/Å; batches of at least ``float32_min_pairs``
-pairs, smaller ones are dispatch-bound and gain nothing): while a structure's largest pair force
-is above it, its evaluations (start, lumped start, iterations) are float32 (2.5x cheaper on the
-trained model; Armijo test with an allowance of 1e-6 |E| for the float32 energy); it then goes
-on in float64 as before (its first float64 step is accepted when it lowers the pair-gradient
-norm, else it is re-evaluated in float64 where it is), so the minima are float64 minima.
-Measured on the 64-structure benchmark (fmax 1e-4, 1 thread): energies within 1e-7 eV of float64
-throughout, median 13 evaluations as before, CPU ~1.2 s -> ~0.95 s at load ~9 (noisy); an
-earlier float32 phase with the plain float64 Armijo test rejected good steps near the minimum
-and cost more than it saved.
+Float32 phase (``float32_above``, default 3e-4 eV/Å, or ``fmax`` when larger; batches of at
+least ``float32_min_pairs`` pairs, smaller ones are dispatch-bound and gain nothing): while a
+structure's largest pair force is above it, its evaluations (start, lumped start, iterations)
+are float32 (2.5x cheaper on the trained model; Armijo test with an allowance of 1e-6 |E| for
+the float32 energy, and a step whose predicted decrease is below that allowance is accepted when
+it lowers the pair-gradient norm); it then goes on in float64 as before (its first float64 step
+is accepted when it lowers the pair-gradient norm, else it is re-evaluated in float64 where it
+is), so the minima are float64 minima. When the structures still in float32 hold fewer than
+``float32_min_pairs`` pairs they all go on in float64 (one model call per iteration instead of
+two; those still above ``float32_above`` take the Armijo test of their first float64 step
+against the float32 energy, with the float32 allowance). Measured on the 64-structure benchmark
+(fmax 1e-4, 1 thread, float32_above 3e-2): energies within 1e-7 eV of float64 throughout, median
+13 evaluations as before, CPU ~1.2 s -> ~0.95 s at load ~9 (noisy); an earlier float32 phase
+with the plain float64 Armijo test rejected good steps near the minimum and cost more than it
+saved.
+
+Measured (issue 14, float32 down to 3e-4 eV/Å; same benchmark, CPU of the batch in one process,
+medians of 6-8 alternated runs at load 5-9): with ``float32_above`` 3e-2 the ~40 structures just
+below it took 4-6 float64 iterations each (0.03-0.06 s per batched float64 call, ~0.39 of the
+0.84 s batch). The float32 gradient is within 1.3e-5 eV/Å (pair norm; median 2.9e-6) of float64
+at the minima and its differences within 2e-5 eV/Å, so float32 steps stay good to ~3e-4 eV/Å;
+but its energy (error ~7e-6 eV) no longer resolves the decrease there (a Newton step's ~g^2/k is
+1e-6-1e-8 eV), so steps were rejected on noise: the gradient-norm test for those. Then nearly
+every structure needs a single float64 evaluation (its first float64 step from below 3e-4
+converges): ``float32_above`` 3e-2 / 1e-3 / 3e-4 CPU 0.75 / 0.65 / 0.59 s (medians of 3
+alternated runs, before the gradient-norm test; evaluations 883 / 899 / 906, with the test 896 /
+899 for 1e-3 / 3e-4, CPU 0.79 / 0.79 vs 0.94 s for 3e-2 in 6 runs at a higher load; 3e-2 -> 3e-4
+0.69 -> 0.61 s in 8 runs at load ~5); 2e-4 919 evaluations, no faster; 1e-4 / 7e-5 / 4e-5 949 /
+968 / 1008 (float32 steps below its noise). The float32 tail leaving together: 33 -> 25 model
+calls, evaluations 894, max 22. Turning the short-range model only for the accepted structures
+with a turned pair, no box projection without bounds, the bond-rotation frame once per iterate:
+per-iteration overhead outside the model ~6 ms (coulomb derivatives 1.5, Newton solve 1.3, model
+assembly and connection 0.7, SR1 secant 0.7 ms), within the noise. ``benchmarks/relax.py --model
+trained --threads 1``, 2 runs alternated with the previous code (load ~5): emlpack batch CPU
+0.65 / 0.62 s (previous 0.74 / 0.84), CPU speedup vs SciPy 17.2 / 18.1 (previous 13.6 / 13.9),
+wall ``speedup_vs_scipy`` 15.5 / 16.8 (previous 13.3 / 14.8); a third pair with the final code
+(float32 tail's Armijo test): CPU 0.58 s (previous 0.86), CPU speedup 19.3 (13.4), wall 19.1
+(10.8). Minima: at fmax 1e-6 within 9e-11 eV of the float64 reference except the flat acetylene
+(as before), at fmax 1e-4 within 6.1e-8 eV except it (1.27e-5 eV, as before). Tried and dropped:
+deferring the float64 steps until the float32 phase is over (one batched float64 call: 8 instead
+of 15 float64 calls, more loop iterations; CPU alike); compacting the evaluated batch at 90 % /
+100 % of the members instead of 75 % (alike); a larger lumped-start difference step 3e-3 / 1e-2
+/ 3e-2 Å (evaluations 903 / 922 / 915); float32 edge lengths from float64 positions with float64
+radial basis (gradient error 1.3e-5 -> 6.4e-6 eV/Å, energy error unchanged: the network's
+rounding dominates); flushing denormals (no change); the float32 tail leaving below 64 / 32 / 1
+pairs instead of 128 (alike); the Coulomb pair derivatives scattered from index lists built once
+(1.8 -> 1.4 ms per call for the whole batch, 0.6 -> 0.7 ms for 3 structures: no net gain). Where
+the batch goes now (~0.62 s): ~0.09 s the start and lumped start (4 float32 calls of the whole
+batch), ~0.38 s the model in the iterations (float32 ~0.23, float64 ~0.11-0.15 of it; calls of
+1-3 structures cost 3-4 ms each, dispatch-bound), ~0.12 s the loop outside the model, ~0.03 s
+setup. A float32 evaluation is ~20 ms for the 64 structures, mostly elementwise passes over the
+4544 free edges x 64 filters (softplus ~1 ms per call) and their backward.
 
 Tried and dropped (issue 14): SchNet filters of the free edges by cubic Hermite interpolation
 from a table of exact values and slopes (spacing 0.002 Å: 2e-11 / 4.5e-10 of max|W| on the
@@ -182,13 +224,16 @@ class RelaxOptions:
     #: "coulomb": structures not converged after this many quasi-Newton iterations finish
     #: with the exact-Hessian Newton method (0: never)
     newton_after: int = 50
-    #: "coulomb": structures whose largest pair force is above this (eV/Å) are evaluated in
-    #: float32 (start, lumped start and iterations; Armijo test with a 1e-6 |E| allowance for
-    #: the float32 energy), then finished in float64 (first step: accepted on a lower
-    #: gradient norm); the minima are float64 minima (0: float64 throughout)
-    float32_above: float = 3e-2
+    #: "coulomb": structures whose largest pair force is above this (or ``fmax`` when larger;
+    #: eV/Å) are evaluated in float32 (start, lumped start and iterations; Armijo test with a
+    #: 1e-6 |E| allowance for the float32 energy, and steps whose predicted decrease is below
+    #: that allowance accepted on a lower pair-gradient norm), then finished in float64 (first
+    #: step: accepted on a lower gradient norm); the minima are float64 minima (0: float64
+    #: throughout; the float32 gradient is within ~1.3e-5 eV/Å of float64, measured)
+    float32_above: float = 3e-4
     #: ... only in batches of at least this many pairs (measured on the trained model: float32
-    #: energy+gradient 2.5x cheaper for 432 pairs, equal for 32, 1.5x dearer for 4)
+    #: energy+gradient 2.5x cheaper for 432 pairs, equal for 32, 1.5x dearer for 4); when the
+    #: structures still in float32 hold fewer pairs than this, they all go on in float64
     float32_min_pairs: int = 128
     #: Hessian probes per vectorised batch are limited so that probes x (edges x filters +
     #: particles x features) stays below this many elements (bounds memory to ~2 GB)
@@ -536,7 +581,11 @@ def _setup(model, structures, bounds, dtype=torch.float64):
             upper[sel] = torch.as_tensor(np.asarray(bnd[1]), dtype=dtype).reshape(-1, 3)
         x = torch.clamp(x, lower, upper)
 
+    bounded = bool(torch.isfinite(lower).any() or torch.isfinite(upper).any())
+
     def projected(grad: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        if not bounded:
+            return grad
         at_low = (x <= lower) & (grad > 0)
         at_up = (x >= upper) & (grad < 0)
         return torch.where(at_low | at_up, 0.0, grad)
@@ -546,7 +595,8 @@ def _setup(model, structures, bounds, dtype=torch.float64):
 
 def _newton_step(prob, hessian, gp, held, floor, active, alpha, max_step, mirror=None):
     """Regularised projected-Newton step: coordinates held at a bound by the gradient are
-    fixed (rows/columns replaced by the identity), the model is shifted to curvature >= floor,
+    fixed (rows/columns replaced by the identity; ``held`` None: none), the model is shifted
+    to curvature >= floor,
     the longest pair displacement capped to ``max_step`` (float or (B,)) and scaled by
     ``alpha`` (B,). With ``mirror`` (eV/Å^2): model curvatures below ``-mirror`` are replaced
     by their magnitude (a descent step that goes no further along them than along a positive
@@ -554,10 +604,13 @@ def _newton_step(prob, hessian, gp, held, floor, active, alpha, max_step, mirror
     dtype = hessian.dtype
     # only the active structures (converged ones would cost an eigendecomposition each)
     idx = torch.nonzero(active).squeeze(1)
-    free = (~held[idx]).to(dtype)
-    reduced = hessian[idx] * free[:, :, None] * free[:, None, :] + torch.diag_embed(
-        held[idx].to(dtype)
-    )
+    if held is None:
+        reduced = hessian[idx]
+    else:
+        free = (~held[idx]).to(dtype)
+        reduced = hessian[idx] * free[:, :, None] * free[:, None, :] + torch.diag_embed(
+            held[idx].to(dtype)
+        )
     rhs = gp[idx][:, :, None]
     # models with every curvature above the floor need no shift: a Cholesky solve (the
     # factorisation of model - floor proves it) instead of an eigendecomposition (measured on
@@ -632,7 +685,15 @@ class _BondRotations:
 
     def _frame(self, x: torch.Tensor):
         """Per pair: distance along the axis (P, 1), radius (P, 1), radial and tangential unit
-        vectors (P, 3), and whether the pair turns (P, 1)."""
+        vectors (P, 3), and whether the pair turns (P, 1) (kept for the last ``x`` object: the
+        relaxation asks for it several times per iteration)."""
+        cached = getattr(self, "_cache", None)
+        if cached is not None and cached[0] is x and cached[1] == x._version:
+            return cached[2]
+        self._cache = (x, x._version, self._compute_frame(x))
+        return self._cache[2]
+
+    def _compute_frame(self, x: torch.Tensor):
         rel = x - self.a
         along = (rel * self.u).sum(1, keepdim=True)
         perp = rel - along * self.u
@@ -709,6 +770,7 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
     dtype = torch.float64
     g, prob, x, lower, upper, projected = _setup(model, structures, bounds, dtype)
     b = g.n_structures
+    bounded = bool(torch.isfinite(lower).any() or torch.isfinite(upper).any())
     coulomb = _CoulombPairs(model, prob)
     # float32 phase: structures with a pair force above opts.float32_above (measured on the
     # trained benchmark model: float32 energy+gradient 2.5x cheaper, gradient error 2e-5 eV/Å,
@@ -745,6 +807,8 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
     radius = torch.full((b,), opts.max_step, dtype=dtype)
     stalled = torch.zeros(b, dtype=torch.bool)
     quasi_newton = min(opts.max_iterations, opts.newton_after or opts.max_iterations)
+    # float32 structures leave the float32 phase below this largest pair force (eV/Å)
+    leave32 = max(opts.float32_above, opts.fmax)
     for _ in range(quasi_newton):
         active = ~converged & ~stalled
         if not bool(active.any()):
@@ -752,11 +816,18 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         # float32 structures below the threshold take their next step in float64, accepted
         # when it lowers the pair-gradient norm (no float64 energy to compare with yet); when
         # it does not, they are re-evaluated in float64 where they are (no step), then go on
-        trying = active & use32 & (fmax < opts.float32_above)
+        trying = active & use32 & (fmax < leave32)
+        if int(g.n_pairs[active & use32 & ~trying].sum()) < opts.float32_min_pairs:
+            # too few float32 pairs left: a float32 call that small is dispatch-bound (no
+            # cheaper than float64) and a second model call per iteration; all leave float32
+            # (measured: 33 -> 25 model calls on the 64-structure benchmark)
+            trying = active & use32
         switch = active & ~use32 & ~exact64
         moving = active & ~switch
         gp = prob.pad(projected(grad, x))
-        held = prob.pad(((x <= lower) | (x >= upper)) & (projected(grad, x) == 0)) > 0
+        held = None
+        if bounded:
+            held = prob.pad(((x <= lower) | (x >= upper)) & (projected(grad, x) == 0)) > 0
         model_hessian = hc + short + pad_eye
         if curvilinear:
             # the model in the cylindrical coordinates of the turned steps
@@ -767,13 +838,14 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         newton = step
         rot = None
         if curvilinear:
-            x_turn, rot = curvilinear.turn(x, step)
-            x_new = torch.clamp(x_turn, lower, upper)
-            # a pair moved by the box bound takes the chord in the secant
-            rot = torch.where((x_new != x_turn).any(1)[:, None, None],
-                              torch.eye(3, dtype=dtype), rot)
+            x_new, rot = curvilinear.turn(x, step)
+            if bounded:
+                x_turn, x_new = x_new, torch.clamp(x_new, lower, upper)
+                # a pair moved by the box bound takes the chord in the secant
+                rot = torch.where((x_new != x_turn).any(1)[:, None, None],
+                                  torch.eye(3, dtype=dtype), rot)
         else:
-            x_new = torch.clamp(x + step, lower, upper)
+            x_new = torch.clamp(x + step, lower, upper) if bounded else x + step
         step = x_new - x
         in32 = moving & use32 & ~trying
         in64 = active & ~in32
@@ -788,12 +860,20 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         n_eval += active.long()
         iters += moving.long()
         slope = segment_sum((grad * step).sum(1), prob.pair_batch, b)
-        noise = torch.where(in32, 1e-6, 1e-12) * energy.abs()
-        accept = switch | moving & ~trying & (e_new <= energy + 1e-4 * slope + noise)
-        if bool(trying.any()):
+        # structures sent to float64 above leave32 (the small float32 tail) compare their
+        # float64 energy with the float32 one, with the float32 allowance
+        forced = trying & (fmax >= leave32)
+        noisy = in32 | forced
+        noise = torch.where(noisy, 1e-6, 1e-12) * energy.abs()
+        accept = switch | (moving & ~trying | forced) & (e_new <= energy + 1e-4 * slope + noise)
+        # steps whose predicted decrease is below the float32 energy's resolution (near the
+        # minimum) are accepted when they lower the pair-gradient norm instead
+        flat = noisy & (slope.abs() < noise)
+        by_norm = trying & ~forced | flat
+        if bool(by_norm.any()):
             norm_new = segment_sum((projected(g_new, x_new) ** 2).sum(1), prob.pair_batch, b)
             norm_old = segment_sum((projected(grad, x) ** 2).sum(1), prob.pair_batch, b)
-            accept |= trying & (norm_new < norm_old)
+            accept |= by_norm & (norm_new < norm_old)
         exact64 |= switch | trying & accept
         use32 &= ~trying
         reject = active & ~accept
@@ -821,13 +901,19 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         ok = active & (rs.abs() > 1e-8 * size) & (rs.abs() > 1e-30)
         upd = r[:, :, None] * r[:, None, :] / torch.where(ok, rs, 1.0)[:, None, None]
         short = torch.where(ok[:, None, None], short + upd, short)
-        if rot is not None and bool(accept.any()):
-            # the short-range model turns with the accepted pairs
-            turn = torch.eye(3, dtype=dtype).repeat(b, prob.n_max, 1, 1)
-            turn[prob.pair_batch, prob.local] = torch.where(accept[prob.pair_batch, None, None],
-                                                            rot, torch.eye(3, dtype=dtype))
-            blocks = short.reshape(b, prob.n_max, 3, prob.n_max, 3)
-            short = torch.einsum("biac,bicjd,bjed->biaje", turn, blocks, turn).reshape(b, m, m)
+        if rot is not None:
+            # the short-range model turns with the accepted pairs (only the structures with a
+            # turned pair: the others' rotations are the identity)
+            turning = accept & (segment_sum(turned_pair.to(dtype), prob.pair_batch, b) > 0)
+            ks = torch.nonzero(turning).squeeze(1)
+            if len(ks):
+                rows = turning[prob.pair_batch]
+                turn = torch.eye(3, dtype=dtype).repeat(len(ks), prob.n_max, 1, 1)
+                new_index = torch.cumsum(turning.long(), 0) - 1
+                turn[new_index[prob.pair_batch[rows]], prob.local[rows]] = rot[rows]
+                blocks = short[ks].reshape(len(ks), prob.n_max, 3, prob.n_max, 3)
+                short[ks] = torch.einsum("biac,bicjd,bjed->biaje", turn, blocks,
+                                         turn).reshape(len(ks), m, m)
         acc_p = accept[prob.pair_batch, None]
         x = torch.where(acc_p, x_new, x)
         grad = torch.where(acc_p, g_new, grad)
