@@ -31,7 +31,9 @@ member's) and ``calc.relax_results``. A failed relaxation raises
 Warnings (``calc.warnings``, also logged) say when a result should not be trusted: an element
 the models were not trained on, a spread across members above ``energy_spread_warning``
 (eV/atom) or ``force_spread_warning`` (eV/Å), or a molecule whose bonding changed since the
-first geometry this calculator saw (:func:`emlpack.bonding.bonding_changes`).
+first geometry this calculator saw (:func:`emlpack.bonding.bonding_changes`); and a model's
+own notice from its checkpoint (a preliminary pretrained ensemble's measured errors), in every
+result's warnings and logged once.
 """
 
 from __future__ import annotations
