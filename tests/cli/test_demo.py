@@ -65,6 +65,8 @@ def test_demo_starts_with_an_installed_pretrained_model(tmp_path, monkeypatch):
     text = "\n".join(_pretrained_lines(step))
     assert "Isotropic polarizability" in text and "emlp ir mini-eqm7 --smiles C" in text
     assert f"{freqs[-1]:.0f} ± " in text            # the frequencies with their spread
+    warned = [line for line in text.splitlines() if line.startswith("- warning")]
+    assert len(warned) == len(set(warned))         # a warning of both commands shown once
 
 
 def test_report_names_configurations_by_key_and_formula(tmp_path):

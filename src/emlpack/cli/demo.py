@@ -237,9 +237,10 @@ def _pretrained_lines(step: dict) -> list[str]:
             f"{f:.0f}" + (f" ± {d:.0f}" if d is not None else "")
             for f, d in zip(freqs, stds, strict=False)) + ".")
         if step["smiles"] == "C1CN1":
-            lines.append("DFT (PBE0/aug-cc-pVTZ) for this molecule, and the comparison: Figure 4"
-                         " of `examples/eqm7/results.md`.")
-    for w in (pol or {}).get("warnings", []) + ir.get("warnings", []):
+            lines.append("DFT (PBE0/aug-cc-pVTZ) for this molecule:"
+                         " `datasets/mini-eqm7/references/pbe0_aug-cc-pvtz/qm7-0011.json`; this"
+                         " ensemble's frequency error on it: `examples/eqm7/shipped/results.md`.")
+    for w in dict.fromkeys((pol or {}).get("warnings", []) + ir.get("warnings", [])):
         lines.append(f"- warning: {w}")
     if step.get("ir_plot"):
         lines += ["", f"![IR spectrum, pretrained ensemble]({step['ir_plot']})"]
