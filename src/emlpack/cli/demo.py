@@ -44,6 +44,9 @@ TRAIN_MINUTES = 5.0
 #: example, in mini-eQM7's test split (the models never saw it)
 PRETRAINED = "mini-eqm7"
 PRETRAINED_SMILES = "C1CN1"
+#: where the demo molecule's DFT reference and the shipped ensemble's error on it are
+PRETRAINED_REFERENCES = ("`datasets/mini-eqm7/references/pbe0_aug-cc-pvtz/qm7-0011.json`; this"
+                         " ensemble's frequency error on it: `examples/eqm7/shipped/results.md`")
 
 #: runs an ``emlp`` command line (argv without ``emlp``) and returns its exit status
 Command = Callable[[list[str]], int]
@@ -236,10 +239,8 @@ def _pretrained_lines(step: dict) -> list[str]:
         lines.append("Harmonic frequencies (cm⁻¹, ensemble mean ± spread): " + ", ".join(
             f"{f:.0f}" + (f" ± {d:.0f}" if d is not None else "")
             for f, d in zip(freqs, stds, strict=False)) + ".")
-        if step["smiles"] == "C1CN1":
-            lines.append("DFT (PBE0/aug-cc-pVTZ) for this molecule:"
-                         " `datasets/mini-eqm7/references/pbe0_aug-cc-pvtz/qm7-0011.json`; this"
-                         " ensemble's frequency error on it: `examples/eqm7/shipped/results.md`.")
+        if step["smiles"] == PRETRAINED_SMILES:
+            lines.append(f"DFT (PBE0/aug-cc-pVTZ) for this molecule: {PRETRAINED_REFERENCES}.")
     for w in dict.fromkeys((pol or {}).get("warnings", []) + ir.get("warnings", [])):
         lines.append(f"- warning: {w}")
     if step.get("ir_plot"):
