@@ -1021,6 +1021,9 @@ def eval_summary(study: Study, set_name: str) -> dict | None:
         for stat in ("mae", "median"):
             g["static"][stat] = {k: mean_std([r["static"][k][stat] for r in rs])
                                  for k in ("energy", "forces", "pair_forces")}
+        if all("pair_field_slope" in r["static"] for r in rs):
+            g["static"]["pair_field_slope"] = mean_std(
+                [r["static"]["pair_field_slope"] for r in rs])
         if all("dynamic" in r for r in rs):
             out["intrinsic_dynamic"] = rs[0]["dynamic"]["intrinsic"]
             for stat in ("mae", "median"):
@@ -1168,6 +1171,14 @@ def _static_md(ev: dict, title: str) -> list[str]:
                     _ms(g["static"][stat][k], 1000, 1) for k in keys) + " |")
             lines.append(f"| {GROUP_LABEL[group]}: {label}, paper | " + " | ".join(
                 _paper(p[group][stat][k]) for k in keys) + " |")
+    slopes = {group: g["static"]["pair_field_slope"] for group, g in ev["groups"].items()
+              if "pair_field_slope" in g["static"]}
+    if slopes:
+        lines += ["", "Pair field response (slope of the pair-force error on the field force qE;"
+                  " 0: the pairs respond to a field as the DFT centres do, 0.5: about twice too"
+                  " soft, polarizabilities about twice too large): " + "; ".join(
+                      f"{GROUP_LABEL[group]} {_ms(s, 1, 2)}" for group, s in slopes.items())
+                  + "."]
     return lines + [""]
 
 

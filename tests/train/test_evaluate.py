@@ -192,3 +192,33 @@ def test_ensemble_table_is_mean_and_sample_std(case):
     else:
         assert cell == mean_std(rates, 1, 1) + " %"
     assert re.search(r"2 model\(s\), 5 structures", table)
+
+
+@pytest.mark.parametrize("scale, slope", [(1.0, 0.0), (2.0, 0.5), (0.5, -1.0)])
+def test_pair_field_slope_measures_the_pairs_field_response(scale, slope):
+    """Labels: the toy model's own pairs relaxed under random fields E (zero pair force).
+    Read with the field ``scale * E`` they are pairs of a "DFT" ``scale`` times stiffer than
+    the model; the slope is ``1 - K_model / K = 1 - 1 / scale`` exactly (0 for its own)."""
+    from emlpack.data.dataset import make_batch
+    from emlpack.train.loss import Metrics, predict
+
+    base = water_molecule()
+    model = spring_model(base)
+    model.requires_grad_(False)
+    rng = np.random.default_rng(2)
+    labels = []
+    for _ in range(4):
+        field = rng.normal(0, 0.3, 3)
+        s = base.copy(field=field)
+        r = relax_pairs(model, s, fmax=1e-9)[0]
+        assert not r.reason
+        labels.append(s.copy(pairs=r.pairs, field=scale * field, energy=-1.0,
+                             forces=np.zeros((3, 3)), pair_forces=np.zeros((4, 3))))
+    metrics, _ = ev.evaluate(model, ConstantReference(E_REF), labels, dynamic=False)
+    assert metrics["static"]["pair_field_slope"] == pytest.approx(slope, abs=1e-7)
+    c = model.config
+    batch = make_batch(labels, ConstantReference(E_REF), c.cutoff, c.gcut, torch.float64)
+    m = Metrics()
+    m.update(predict(model, batch, ConstantReference(E_REF), create_graph=False), batch)
+    assert m.result()["pair_field_slope"] == pytest.approx(slope, abs=1e-7)
+    assert "Pair field response: slope" in ev.markdown_table([metrics])

@@ -3,6 +3,9 @@
 * Static errors (pairs at the DFT centres): energy per atom (relative to the reference, i.e.
   the same energy differences the model was trained on), core forces and pair forces per
   component; MAE and median absolute error.
+* Pair field response: the slope ``c`` of the pair-force error on the field force ``q E``
+  (:func:`emlpack.train.loss.field_response_slope`): 0 when the pairs respond to a field as
+  DFT's centres do, ~0.5 when they are about twice too soft (polarizabilities ~2x too large).
 * Intrinsic variability: the MAE of the best constant model (the median of the labels), with
   the field forces ``q E`` subtracted from the force labels (as in the paper's tables; the
   errors are unaffected by this).
@@ -29,7 +32,7 @@ from emlpack._files import write_figure_atomic, write_text_atomic
 from emlpack.data.dataset import make_batch
 from emlpack.data.references import reference_from_metadata
 from emlpack.nn.checkpoint import load_model, read_checkpoint
-from emlpack.train.loss import predict
+from emlpack.train.loss import field_response_slope, predict
 from emlpack.units import E_A_IN_DEBYE
 
 log = logging.getLogger(__name__)
@@ -148,6 +151,8 @@ def evaluate(model, reference, structures, dynamic: bool = True, progress: bool 
             "energy": _stats(a["e_pred"] - a["e_true"]),
             "forces": _stats(a["f_pred"] - a["f_true"]),
             "pair_forces": _stats(a["p_pred"] - a["p_true"]),
+            "pair_field_slope": field_response_slope(a["p_pred"] - a["p_true"],
+                                                     a["p_true"] - a["p_free"]),
         },
         "intrinsic": {"energy": _intrinsic(a["e_true"]), "forces": _intrinsic(a["f_free"]),
                       "pair_forces": _intrinsic(a["p_free"])},
@@ -181,6 +186,11 @@ def markdown_table(results: list[dict], title: str = "") -> str:
             _fmt([r["static"][k][stat] for r in results], 1000, 1) for k in keys) + " |")
     ratio = r0["intrinsic"]["forces"] / np.mean([r["static"]["forces"]["mae"] for r in results])
     lines += ["", f"Core-force MAE is {ratio:.1f}x below the intrinsic variability.", ""]
+    slopes = [r["static"].get("pair_field_slope") for r in results]
+    if all(s is not None for s in slopes):
+        lines += [f"Pair field response: slope {_fmt(slopes, 1, 2)} of the pair-force error on"
+                  " the field force qE (0: pairs respond to a field as the DFT centres do; 0.5:"
+                  " about twice too soft, polarizabilities about twice too large).", ""]
     if "dynamic" in r0:
         d0 = r0["dynamic"]
         lines += ["### Dynamic errors (electron pairs relaxed)", "",

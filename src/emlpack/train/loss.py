@@ -5,6 +5,8 @@
       + lambda_c / 3C    sum_j |f_j - f_tr,j|^2                      (electron-pair forces)
       + lambda_s / 9B_s  sum_b |sigma_b - sigma_tr,b|^2              (stress in GPa, if labelled)
 
+Validation also reports the pairs' field response (:func:`field_response_slope`).
+
 Each term is a sum divided by a count. :func:`loss_terms` returns the sums and the counts
 separately so that data-parallel training can divide by the *global* counts (then the gradient
 of K processes equals that of one process with the same global batch).
@@ -20,6 +22,22 @@ from emlpack.data.dataset import Batch
 from emlpack.units import EV_PER_A3_IN_GPA
 
 TERMS = ("energy", "forces", "pair_forces", "stress")
+
+
+def field_response_slope(residual, field_force) -> float:
+    """``c = sum r . qE / sum |qE|^2`` over electron pairs (dimensionless).
+
+    ``residual`` is predicted minus labelled pair force and ``field_force`` the field's force
+    ``q E`` on each pair (eV/Å, same shape). The labels put each pair where DFT's Foster-Boys
+    centre sits under the field; a model whose pairs are too soft (stiffness ``K_model``
+    against DFT's ``K``) leaves ``(1 - K_model / K) q E`` of the field force unbalanced there,
+    so ``c ~ 1 - K_model / K``: 0 when the pairs respond to a field as DFT's centres do, 0.5
+    when they move about twice as far (polarizabilities about twice too large). The fields
+    are random and independent of the geometry, so other errors average out of ``c``."""
+    r = torch.as_tensor(residual, dtype=torch.float64)
+    qe = torch.as_tensor(field_force, dtype=torch.float64)
+    den = float((qe * qe).sum())
+    return float((r * qe).sum()) / den if den > 0 else float("nan")
 
 
 @dataclass
@@ -84,14 +102,20 @@ class Metrics:
 
     def __init__(self) -> None:
         self.sums = {t: [0.0, 0.0, 0.0] for t in TERMS}  # abs, sq, count
+        self.field = [0.0, 0.0]  # pairs: sum r . qE, sum |qE|^2 (field_response_slope)
 
     def update(self, pred: dict, batch: Batch) -> None:
         with torch.no_grad():
             e = (pred["energy"] - batch.energy) / batch.n_cores.to(batch.energy.dtype)
             self._add("energy", e)
             self._add("forces", pred["forces"][batch.core_mask] - batch.forces[batch.core_mask])
-            self._add("pair_forces",
-                      pred["forces"][batch.pair_mask] - batch.forces[batch.pair_mask])
+            pairs = batch.pair_mask
+            residual = pred["forces"][pairs] - batch.forces[pairs]
+            self._add("pair_forces", residual)
+            g = batch.graph
+            qe = (g.charges[:, None] * g.field[g.batch])[pairs].to(residual.dtype)
+            self.field[0] += float((residual * qe).sum())
+            self.field[1] += float((qe * qe).sum())
             if "stress" in pred and bool(batch.has_stress.any()):
                 m = batch.has_stress
                 self._add("stress", (pred["stress"][m] - batch.stress[m]) * EV_PER_A3_IN_GPA)
@@ -104,12 +128,14 @@ class Metrics:
         s[2] += float(d.numel())
 
     def tensor(self) -> torch.Tensor:
-        return torch.tensor([v for t in TERMS for v in self.sums[t]], dtype=torch.float64)
+        return torch.tensor([v for t in TERMS for v in self.sums[t]] + self.field,
+                            dtype=torch.float64)
 
     def load_tensor(self, t: torch.Tensor) -> None:
         vals = t.tolist()
         for k, name in enumerate(TERMS):
             self.sums[name] = vals[3 * k : 3 * k + 3]
+        self.field = vals[3 * len(TERMS):]
 
     def result(self) -> dict[str, float]:
         out = {}
@@ -117,6 +143,8 @@ class Metrics:
             if n > 0:
                 out[f"{name}_mae"] = a / n
                 out[f"{name}_rmse"] = (s / n) ** 0.5
+        if self.field[1] > 0:
+            out["pair_field_slope"] = self.field[0] / self.field[1]
         return out
 
     def loss(self, weights: LossWeights) -> float:
