@@ -120,6 +120,32 @@ def test_campaign_resumes_from_shards_on_a_fresh_machine(tmp_path, monkeypatch):
     assert "8 configurations of 2 molecules (2 complete)" in card
 
 
+def test_a_changed_field_distribution_continues_in_a_new_store(tmp_path):
+    """A campaign whose recipe predates ``field_distribution`` (magnitude-uniform fields) goes
+    on with the ball: its finished labels (even one no shard holds yet) are kept, the rest is
+    labeled in a new working store, and the card says which shards drew which fields."""
+    folder = _tiny_campaign(tmp_path / "c")
+    settings = yaml.safe_load((folder / campaign.CAMPAIGN_FILE).read_text())
+    settings["recipe"].pop("field_distribution")
+    (folder / campaign.CAMPAIGN_FILE).write_text(yaml.safe_dump(settings))
+    out = campaign.run_campaign(folder, workers=0, hours=0.0, progress=False)
+    assert out["new_records"] == 1
+    first = shard_paths(folder)[0]
+    old_field = read_shards(folder).structures[0].field
+    first.unlink()  # as if the run was killed before its last shard: the label is in work/
+    settings["recipe"]["field_distribution"] = "ball"
+    (folder / campaign.CAMPAIGN_FILE).write_text(yaml.safe_dump(settings))
+    out = campaign.run_campaign(folder, workers=0, progress=False)
+    assert out["new_records"] == 7
+    assert len(list((folder / "work").glob("labels-*.h5"))) == 2
+    data = read_shards(folder)
+    assert len(data.structures) == 8
+    np.testing.assert_array_equal(data.structures[0].field, old_field)
+    card = (folder / "README.md").read_text()
+    assert "- fields: 1 configurations uniform direction, magnitude uniform" in card
+    assert "- fields: 7 configurations uniform in the ball" in card
+
+
 def test_sigterm_turns_finished_labels_into_a_shard(tmp_path, monkeypatch):
     """``kill PID`` (the end of a session) stops the run like Ctrl-C, and the labels finished
     so far become a shard before it exits."""

@@ -19,6 +19,7 @@ from emlpack.qm.sampling import (
     torsion_sample,
 )
 from emlpack.units import BOLTZMANN_EV_K, FIELD_AU_IN_V_PER_A
+from tests.conftest import shared_path
 
 
 def _synthetic_hessian(positions, seed=0):
@@ -133,13 +134,35 @@ def test_dimer_distances_uniform_in_range(ethanol):
     assert abs(ds.mean() - 3.45) < 0.25 and abs(ds.std() - 4.9 / np.sqrt(12)) < 0.2
 
 
-def test_random_field_bounds_and_isotropy():
+@pytest.mark.parametrize("distribution, mean, below_half", [("ball", 0.0075, 0.125),
+                                                            ("magnitude", 0.005, 0.5)])
+def test_random_field_bounds_and_isotropy(distribution, mean, below_half):
+    """Ball: mean |E| = 3/4 R and P(|E| < R/2) = 1/8; magnitude: R/2 and 1/2."""
     rng = np.random.default_rng(0)
-    fields = np.array([random_field(rng, 0.01) for _ in range(5000)]) / FIELD_AU_IN_V_PER_A
+    fields = np.array([random_field(rng, 0.01, distribution) for _ in range(5000)])
+    fields /= FIELD_AU_IN_V_PER_A
     mag = np.linalg.norm(fields, axis=1)
-    assert mag.max() <= 0.01 and abs(mag.mean() - 0.005) < 2e-4
+    assert mag.max() <= 0.01 and abs(mag.mean() - mean) < 2e-4
+    assert abs((mag < 0.005).mean() - below_half) < 0.015
     unit = fields / mag[:, None]
     assert np.all(np.abs(unit.mean(axis=0)) < 0.05)
+
+
+def test_default_field_distribution_is_the_authors():
+    """The shared eQM7 frames (the authors' data) have mean |E| 0.00746 au and 14.5 % below
+    0.005 au: the ball, which the default recipe draws; a recipe without the key (written
+    before it existed) keeps the magnitude-uniform draws it was labeled with."""
+    from emlpack.qm.recipe import LEGACY_FIELD_DISTRIBUTION, default_recipe
+
+    assert default_recipe()["field_distribution"] == "ball"
+    assert LEGACY_FIELD_DISTRIBUTION == "magnitude"
+    from emlpack.io import read_structures
+
+    shared = shared_path("data/eqm7_pbe0_subset.xyz")
+    mag = np.array([np.linalg.norm(s.field) for s in read_structures(shared)])
+    mag /= FIELD_AU_IN_V_PER_A
+    assert mag.max() <= 0.01 + 1e-6 and abs(mag.mean() - 0.0075) < 3e-4
+    assert abs((mag < 0.005).mean() - 0.125) < 0.03
 
 
 def test_qm7_radicals_are_restored_to_closed_shell():
@@ -197,3 +220,14 @@ def test_soft_modes_are_floored_at_the_minimum_force_constant(ethanol):
     var, expected = np.var(q), BOLTZMANN_EV_K * t / 0.06
     assert abs(var - expected) < 5 * expected * np.sqrt(2.0 / n), (var, expected)
     assert var < 1e-2 * BOLTZMANN_EV_K * t / 1e-4  # far below the unfloored variance
+
+
+def test_magnitude_fields_are_the_draws_of_recipes_without_the_key():
+    """The labeled configurations of a stored recipe without ``field_distribution`` must be
+    regenerated bit for bit on resume: ``magnitude`` repeats the original formula."""
+    a, b = np.random.default_rng(7), np.random.default_rng(7)
+    for _ in range(50):
+        direction = a.normal(size=3)
+        direction /= np.linalg.norm(direction)
+        original = direction * a.uniform(0.0, 0.01) * FIELD_AU_IN_V_PER_A
+        assert np.array_equal(random_field(b, 0.01, "magnitude"), original)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import hashlib
 import io
 import logging
 import os
@@ -27,6 +28,7 @@ import socket
 import subprocess
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -43,12 +45,20 @@ from emlpack.data.shards import (
     shard_paths,
 )
 from emlpack.data.store import DatasetStore, StoreError
-from emlpack.qm.recipe import default_recipe, rescale_counts, validate_recipe
+from emlpack.qm.recipe import (
+    LEGACY_FIELD_DISTRIBUTION,
+    default_recipe,
+    rescale_counts,
+    validate_recipe,
+)
 from emlpack.qm.sampling import SamplingError
 
 log = logging.getLogger(__name__)
 
 CAMPAIGN_FILE = "campaign.yaml"
+#: the card's words for each field distribution (:data:`emlpack.qm.sampling.FIELD_DISTRIBUTIONS`)
+FIELD_TEXT = {"ball": "uniform in the ball, as the authors' data",
+              "magnitude": "uniform direction, magnitude uniform in [0, max]"}
 #: QM7 rows never labeled: 0-4 and 7 are the authors' own DFT data (a second test set), 5, 6, 8
 #: and 9 (acetaldehyde, dimethyl ether, propane, propene) are reserved for an independent check
 EXCLUDED_ROWS = {0: "paper validation (shared DFT data)", 1: "paper validation (shared DFT data)",
@@ -195,6 +205,13 @@ def init_campaign(folder: str | Path, smiles_csv: str | Path, seed: int = 0,
     return molecules
 
 
+def work_store_path(folder: str | Path, recipe: dict) -> Path:
+    """This host's working store for ``recipe`` (``work/labels-HOST-HASH.h5``, not committed):
+    a changed recipe starts a new store (a store refuses a recipe it was not labeled with)."""
+    digest = hashlib.sha1(yaml.safe_dump(recipe, sort_keys=True).encode()).hexdigest()[:8]
+    return Path(folder) / "work" / f"labels-{socket.gethostname()}-{digest}.h5"
+
+
 def load_settings(folder: str | Path) -> dict:
     path = Path(folder) / CAMPAIGN_FILE
     if not path.is_file():
@@ -275,8 +292,17 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
     for tmp in [*(folder / SHARD_DIR).glob(".*.tmp*"), *(folder / "prepared").glob(".*.tmp*")]:
         if time.time() - tmp.stat().st_mtime > 3600:
             tmp.unlink()  # left by a run killed while writing (never a finished file)
+    work = work_store_path(folder, recipe)
+    for other in sorted((folder / "work").glob(f"labels-{socket.gethostname()}*.h5")):
+        if other != work:  # labels of a run with an earlier recipe: keep the finished ones
+            with DatasetStore(other, "a") as store:
+                shard = export_shard(folder, store, {"host": socket.gethostname()})
+            if shard is not None:
+                log.info("campaign %s: %s (earlier recipe) -> %s", folder, other, shard)
+                if commit:
+                    git_commit(folder, [folder / SHARD_DIR],
+                               f"{settings.get('name', folder.name)}: shard {shard.stem}")
     done = finished_keys(folder)
-    work = folder / "work" / f"labels-{socket.gethostname()}.h5"
     t0 = time.time()
     state = {"last": time.monotonic(), "shards": [], "since": time.time()}
     run = {"host": socket.gethostname(), "cpus": os.cpu_count() or 1, "workers": workers,
@@ -356,6 +382,14 @@ def campaign_statistics(folder: str | Path) -> dict:
         n = len(s.numbers)
         bucket = f"{(n - 1) // 5 * 5 + 1}-{(n - 1) // 5 * 5 + 5}"
         by_size.setdefault(bucket, []).append(float(s.info.get("wall_time", np.nan)))
+    fields: dict[str, dict] = {}
+    per_shard = Counter(s.source.rsplit(",", 1)[0] for s in data.structures)
+    for path, meta in zip(data.shards, data.metadata, strict=True):
+        stored = yaml.safe_load(str(meta.get("recipe") or "")) or {}
+        name = stored.get("field_distribution", LEGACY_FIELD_DISTRIBUTION)
+        entry = fields.setdefault(name, {"configurations": 0, "shards": []})
+        entry["configurations"] += per_shard.get(str(path), 0)
+        entry["shards"].append(path.stem)
     reasons: dict[str, int] = {}
     for f in data.failures:
         reason = f["reason"].split(":")[0][:80]
@@ -371,6 +405,7 @@ def campaign_statistics(folder: str | Path) -> dict:
         if data.hydrides else [],
         "n_failures": len(data.failures),
         "failure_reasons": reasons,
+        "field_distributions": fields,
         "n_shards": len(data.shards),
         "wall_hours": wall / 3600.0,
         "configurations_per_hour": len(data.structures) / (wall / 3600.0) if wall > 0 else None,
@@ -409,8 +444,9 @@ def write_card(folder: str | Path) -> Path:
         f"- preparation (geometry and Hessian for the normal modes only, never labels):"
         f" {recipe['prepare']['level']} (tblite), BFGS to {recipe['prepare']['fmax']} eV/Å;",
         f"- per molecule: {samples} (the paper's 100 : 100 : 150 : 150 proportions), each"
-        f" with a random field of up to {recipe['field_max_au']} au; recipe seed"
-        f" {recipe.get('seed', 0)};",
+        f" with a random field of up to {recipe['field_max_au']} au"
+        f" ({FIELD_TEXT[recipe.get('field_distribution', LEGACY_FIELD_DISTRIBUTION)]});"
+        f" recipe seed {recipe.get('seed', 0)};",
         "- hydride references H2, CH4, NH3, H2O at the labeling level (kind `hydride`).",
         "",
         "## Molecules and split",
@@ -436,6 +472,12 @@ def write_card(folder: str | Path) -> Path:
             f"{k} {stats['configurations_by_split'][k]} configurations /"
             f" {stats['molecules_by_split'][k]} molecules" for k in SPLITS) + ";",
         f"- hydride references: {', '.join(stats['hydrides']) or 'none yet'};",
+        *([f"- fields: {v['configurations']} configurations {FIELD_TEXT[k]} (shards"
+           f" {v['shards'][0]}-{v['shards'][-1]})" + ("" if k == "ball" else
+           ", the recipes before 2026-11-25; the authors' data, and emlpack since, draw"
+           " uniformly in the ball") + ";"
+           for k, v in stats["field_distributions"].items()]
+          if len(stats["field_distributions"]) > 1 else []),
         f"- failures: {stats['n_failures']}"
         + ("" if not stats["failure_reasons"] else " (" + "; ".join(
             f"{v} × {k}" for k, v in stats["failure_reasons"].items()) + ")") + ";",

@@ -1,9 +1,9 @@
 """Configurations of a crystal for labeling: the field set and the stress set (paper, beta-glycine).
 
 Two sets, because a Berry-phase field and the stress cannot be computed together (CP2K 2023.1,
-Quantum ESPRESSO): the *field set* gets a random homogeneous field (uniform direction,
-magnitude uniform up to ``max_field_au`` = 0.01 au) and no stress; the *stress set* has no
-field and is labeled with stress.
+Quantum ESPRESSO): the *field set* gets a random homogeneous field (uniform in the ball of
+radius ``max_field_au`` = 0.01 au, :func:`emlpack.qm.sampling.random_field`) and no stress;
+the *stress set* has no field and is labeled with stress.
 
 Two generators of geometries around a reference crystal:
 

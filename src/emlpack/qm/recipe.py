@@ -1,7 +1,9 @@
 """Sampling recipes (YAML) and the configurations they generate for one molecule.
 
 The default is the paper's eQM7 recipe, per molecule: 100 NMS@600K, 100 NMS@800K,
-150 NMS@800K + torsion and 150 NMS@800K + dimer, each with a random field up to 0.01 au.
+150 NMS@800K + torsion and 150 NMS@800K + dimer, each with a random field up to 0.01 au
+(uniform in the ball, as in the authors' data; a stored recipe without ``field_distribution``
+was drawn with ``magnitude``, see :data:`emlpack.qm.sampling.FIELD_DISTRIBUTIONS`).
 Every configuration has a stable key ``<molecule>/<kind>/<index>`` and its own random stream
 (seeded by the recipe seed, the molecule name, the kind and the index), so a resumed run
 regenerates exactly the configurations it skipped.
@@ -18,6 +20,7 @@ import numpy as np
 import yaml
 
 from emlpack.qm.sampling import (
+    FIELD_DISTRIBUTIONS,
     Molecule,
     SamplingError,
     dimer_sample,
@@ -27,6 +30,9 @@ from emlpack.qm.sampling import (
     torsion_sample,
 )
 
+#: the field distribution of a recipe that names none (recipes written before the key existed)
+LEGACY_FIELD_DISTRIBUTION = "magnitude"
+
 DEFAULT_RECIPE_YAML = """\
 # emlp label recipe: the paper's eQM7 sampling (per molecule)
 level: paper              # labeling level: preset (paper, quick, tiny) or xc/basis
@@ -34,7 +40,8 @@ prepare:
   level: null             # level of the optimisation and Hessian; null = the labeling level
   optimize: true          # optimise the RDKit geometry before the Hessian
   fmax: 0.01              # eV/Å
-field_max_au: 0.01        # random homogeneous field, magnitude uniform in [0, field_max_au]
+field_max_au: 0.01        # random homogeneous field of at most field_max_au (au)
+field_distribution: ball  # uniform in that ball, as the authors' data (magnitude: |E| uniform)
 dimer:
   probes: [CH4, NH3, H2O]
   d_min: 0.9              # Å, closest intermolecular distance
@@ -117,6 +124,8 @@ def validate_recipe(recipe: dict) -> None:
             raise SamplingError(f"recipe sample {s}: negative count or temperature")
     if not 0 <= float(recipe.get("field_max_au", 0.0)) <= 0.05:
         raise SamplingError("field_max_au must be in [0, 0.05] au")
+    if recipe.get("field_distribution", LEGACY_FIELD_DISTRIBUTION) not in FIELD_DISTRIBUTIONS:
+        raise SamplingError(f"field_distribution must be one of {', '.join(FIELD_DISTRIBUTIONS)}")
 
 
 @dataclass
@@ -179,6 +188,7 @@ def configurations(molecule: Molecule, recipe: dict, probes: dict[str, Molecule]
                                          float(dimer.get("d_max", 6.0)))
                 pos = np.concatenate([pos, placed])
                 numbers = np.concatenate([numbers, probe.numbers])
-            field = random_field(rng, float(recipe.get("field_max_au", 0.01)))
+            field = random_field(rng, float(recipe.get("field_max_au", 0.01)),
+                                 recipe.get("field_distribution", LEGACY_FIELD_DISTRIBUTION))
             out.append(Configuration(key, molecule.name, kind, numbers, pos, field))
     return out
