@@ -161,7 +161,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from emlpack.nn.electrostatics import coulomb_pair_derivatives, ewald_reciprocal_derivatives
+from emlpack.nn.electrostatics import (
+    coulomb_molecular,
+    coulomb_pair_derivatives,
+    ewald_reciprocal,
+    ewald_reciprocal_derivatives,
+)
 from emlpack.nn.graph import Graph
 from emlpack.nn.potential import EMLP
 from emlpack.nn.scatter import segment_sum
@@ -288,16 +293,22 @@ class _PairProblem:
 
         self._grad = torch.func.grad(total_energy)
 
-    def energy(self, x: torch.Tensor) -> torch.Tensor:
-        """Energies (B,) with the pairs at ``x`` (P_total, 3)."""
+    def energy(self, x: torch.Tensor, long_range: bool = True) -> torch.Tensor:
+        """Energies (B,) with the pairs at ``x`` (P_total, 3); ``long_range=False``: without
+        the electrostatic energy (plain :class:`EMLP` only)."""
         pos = self.g.positions.index_put((self.pair_idx,), x)
+        if not long_range:
+            return self.model.energy_parts(self.g, pos, held=self.held,
+                                           long_range=False)["energy"]
         if self.held is None:
             return self.model.energy(self.g, pos)
         return self.model.energy(self.g, pos, held=self.held)
 
-    def energy_gradient(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def energy_gradient(
+        self, x: torch.Tensor, long_range: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         x = x.detach().requires_grad_(True)
-        e = self.energy(x)
+        e = self.energy(x, long_range)
         (grad,) = torch.autograd.grad(e.sum(), x)
         return e.detach(), grad.detach()
 
@@ -356,8 +367,9 @@ class _PairProblem:
 class _CoulombPairs:
     """Analytic electrostatics of the pairs at fixed cores: the pair gradient (P_total, 3) and
     the padded pair-block Hessians (B, 3 Pmax, 3 Pmax) of the Gaussian-charge Coulomb energy
-    (molecules) and the reciprocal Ewald energy (crystals, fixed cell), float64. The field
-    energy is linear in the positions and adds nothing to either difference or curvature."""
+    (molecules) and the reciprocal Ewald energy (crystals, fixed cell), and on request the
+    energy (B,), float64. The field energy is linear in the positions and adds nothing to
+    either difference or curvature."""
 
     def __init__(self, model: EMLP, prob: _PairProblem) -> None:
         g = prob.g
@@ -373,6 +385,10 @@ class _CoulombPairs:
         self.qq = q[self.ci] * q[self.cj]
         self.positions = g.positions.detach().double()
         self.charges = q
+        # the energy of the core-core Coulomb pairs and the self energies do not change
+        self.fixed_energy = coulomb_molecular(
+            self.positions, q, g.coulomb_i[~keep], g.coulomb_j[~keep], g.batch, ~g.pbc,
+            g.n_structures, self.gamma, self.eps)
         self.periodic = []
         for b in torch.unique(g.kvec_batch).tolist():
             members = torch.nonzero(g.batch == b).squeeze(1)
@@ -380,19 +396,30 @@ class _CoulombPairs:
             self.periodic.append((b, members, rows, g.kvec_n[g.kvec_batch == b].double()))
 
     def __call__(
-        self, x: torch.Tensor, active: torch.Tensor | None = None, hessian: bool = True
-    ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Gradient and Hessians at ``x``; with ``active`` (B,) bool only those structures are
-        computed (the others' entries are zero); ``hessian=False``: the gradient only (None)."""
+        self, x: torch.Tensor, active: torch.Tensor | None = None, hessian: bool = True,
+        energy: bool = False,
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+        """Gradient, Hessians and energies at ``x``; with ``active`` (B,) bool only those
+        structures are computed (the others' entries are zero, their energies meaningless);
+        ``hessian=False``: no Hessians (None); ``energy=False``: no energies (None)."""
         prob = self.prob
-        b, n = prob.g.n_structures, prob.n_max
+        g = prob.g
+        b, n = g.n_structures, prob.n_max
         pos = self.positions.index_put((prob.pair_idx,), x.detach().double())
         grad = pos.new_zeros(len(prob.pair_idx), 3)
         hess = pos.new_zeros(b, n, n, 3, 3) if hessian else None
         ci, cj, qq = self.ci, self.cj, self.qq
         if active is not None and len(ci):
-            keep = active[prob.g.batch[ci]]
+            keep = active[g.batch[ci]]
             ci, cj, qq = ci[keep], cj[keep], qq[keep]
+        e = None
+        if energy:
+            e = self.fixed_energy + coulomb_molecular(
+                pos, self.charges, ci, cj, g.batch, torch.zeros_like(g.pbc), b, self.gamma,
+                self.eps)
+            if self.periodic:
+                e = e + ewald_reciprocal(pos, self.charges, g.batch, g.cell.double(),
+                                         g.kvec_n.double(), g.kvec_batch, self.gamma)
         if len(ci):
             gr, h = coulomb_pair_derivatives(pos[cj] - pos[ci], qq, self.gamma, self.eps)
             s = prob.g.batch[ci]
@@ -406,7 +433,6 @@ class _CoulombPairs:
             both = pi & pj
             hess.index_put_((s[both], li[both], lj[both]), -h[both], accumulate=True)
             hess.index_put_((s[both], lj[both], li[both]), -h[both], accumulate=True)
-        g = prob.g
         for s_idx, members, rows, kn in self.periodic:
             if active is not None and not bool(active[s_idx]):
                 continue
@@ -419,9 +445,9 @@ class _CoulombPairs:
                 m = len(rows)
                 hess[s_idx, :m, :m] += h.permute(0, 2, 1, 3)
         if not hessian:
-            return grad.to(x.dtype), None
+            return grad.to(x.dtype), None, e
         hess = hess.permute(0, 1, 3, 2, 4).reshape(b, 3 * n, 3 * n)
-        return grad.to(x.dtype), hess
+        return grad.to(x.dtype), hess, e
 
 
 def _subgraph(g: Graph, keep: torch.Tensor) -> Graph:
@@ -485,7 +511,7 @@ class _ActiveEvaluator:
         self.members = torch.ones(prob.g.n_structures, dtype=torch.bool)
         self.sub, self.rows = prob, None
 
-    def __call__(self, x, active, energy, grad):
+    def __call__(self, x, active, energy, grad, long_range=True):
         if int(active.sum()) < self.fraction * int(self.members.sum()) or bool(
             (active & ~self.members).any()
         ):
@@ -494,8 +520,8 @@ class _ActiveEvaluator:
                                     held=_held_subset(self.full, active))
             self.rows = active[self.full.pair_batch]
         if self.rows is None:
-            return self.full.energy_gradient(x)
-        e_sub, g_sub = self.sub.energy_gradient(x[self.rows])
+            return self.full.energy_gradient(x, long_range)
+        e_sub, g_sub = self.sub.energy_gradient(x[self.rows], long_range)
         e = energy.clone()
         e[self.members] = e_sub
         gr = grad.clone()
@@ -781,10 +807,17 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
                and type(model).energy_parts is EMLP.energy_parts)
     prob32 = _PairProblem(model, g.to(dtype=torch.float32)) if low else prob
     work = prob32 if low else prob
-    energy, grad = (t.to(dtype) for t in work.energy_gradient(x.to(work.g.dtype)))
+    # plain EMLP: the model evaluations leave out the electrostatics, whose energy and gradient
+    # come from the analytic derivatives computed at every iterate anyway (float64)
+    analytic = type(model).energy_parts is EMLP.energy_parts
+    lr = not analytic  # whether the model evaluations include the electrostatics
+    energy, grad = (t.to(dtype) for t in work.energy_gradient(x.to(work.g.dtype), lr))
     use32 = torch.full((b,), bool(low))
     exact64 = ~use32  # energy and gradient are float64 values
-    gc, hc = coulomb(x)
+    gc, hc, e_coulomb = coulomb(x, energy=analytic)
+    g_short = grad if analytic else grad - gc
+    if analytic:
+        energy, grad = energy + e_coulomb, grad + gc
     m = 3 * prob.n_max
     short = torch.zeros(b, m, m, dtype=dtype)
     n_eval = torch.ones(b, dtype=torch.long)
@@ -797,7 +830,7 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
     converged = (fmax < opts.fmax) & exact64 | (g.n_pairs == 0)
     if opts.short_range_start == "lumped" and not bool(converged.all()):
         # float32: a larger difference step (measured: 3e-4 Å gives 3e-4 relative error)
-        short = _lumped_short_range(work, coulomb, x, grad, 3e-4 if low else 1e-4)
+        short = _lumped_short_range(work, coulomb, x, g_short, 3e-4 if low else 1e-4, lr)
         n_eval += 3 * (~converged).long()
     evaluate = _ActiveEvaluator(model, prob)
     evaluate32 = _ActiveEvaluator(model, prob32)
@@ -851,12 +884,15 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         in64 = active & ~in32
         e_new, g_new = energy, grad
         if bool(in64.any()):
-            e_new, g_new = evaluate(x_new, in64, energy, grad)
+            e_new, g_new = evaluate(x_new, in64, energy, grad, lr)
         if bool(in32.any()):
-            e32, g32 = evaluate32(x_new.float(), in32, energy.float(), grad.float())
+            e32, g32 = evaluate32(x_new.float(), in32, energy.float(), grad.float(), lr)
             e_new = torch.where(in32, e32.to(dtype), e_new)
             g_new = torch.where(in32[prob.pair_batch, None], g32.to(dtype), g_new)
-        gc_new, hc_new = coulomb(x_new, active)
+        gc_new, hc_new, ec_new = coulomb(x_new, active, energy=analytic)
+        if analytic:
+            e_new = torch.where(active, e_new + ec_new, energy)
+            g_new = torch.where(active[prob.pair_batch, None], g_new + gc_new, grad)
         n_eval += active.long()
         iters += moving.long()
         slope = segment_sum((grad * step).sum(1), prob.pair_batch, b)
@@ -958,22 +994,24 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
                     fmax, min_curv, opts)
 
 
-def _lumped_short_range(prob, coulomb, x, grad, step=1e-4):
+def _lumped_short_range(prob, coulomb, x, g_short, step=1e-4, long_range=True):
     """Block-diagonal (3x3 per pair) estimate of the short-range pair Hessian from three
-    forward differences of the gradient (probe: one Cartesian direction on every pair at once,
-    ``step`` Å; three batched energy+gradient evaluations in ``prob``'s dtype, differences in
-    ``x``'s): each pair's block is the row sum of its short-range couplings (off-diagonal
-    blocks lumped onto it)."""
+    forward differences of the short-range gradient ``g_short`` (probe: one Cartesian
+    direction on every pair at once, ``step`` Å; three batched energy+gradient evaluations in
+    ``prob``'s dtype, differences in ``x``'s; ``long_range``: the evaluations include the
+    electrostatics, taken off with ``coulomb``): each pair's block is the row sum of its
+    short-range couplings (off-diagonal blocks lumped onto it)."""
     n = prob.n_max
     b = prob.g.n_structures
-    gc, _ = coulomb(x, hessian=False)
     blocks = x.new_zeros(len(x), 3, 3)
     for c in range(3):
         shifted = x.clone()
         shifted[:, c] += step
-        _, g_shift = prob.energy_gradient(shifted.to(prob.g.dtype))
-        gc_shift, _ = coulomb(shifted, hessian=False)
-        blocks[:, :, c] = ((g_shift.to(x.dtype) - grad) - (gc_shift - gc)) / step
+        _, g_shift = prob.energy_gradient(shifted.to(prob.g.dtype), long_range)
+        g_shift = g_shift.to(x.dtype)
+        if long_range:
+            g_shift = g_shift - coulomb(shifted, hessian=False)[0]
+        blocks[:, :, c] = (g_shift - g_short) / step
     blocks = 0.5 * (blocks + blocks.transpose(1, 2))
     out = x.new_zeros(b, n, n, 3, 3)
     out[prob.pair_batch, prob.local, prob.local] = blocks
