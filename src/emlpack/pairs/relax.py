@@ -163,7 +163,7 @@ import torch
 
 from emlpack.nn.electrostatics import (
     coulomb_molecular,
-    coulomb_pair_derivatives,
+    coulomb_pair_terms,
     ewald_reciprocal,
     ewald_reciprocal_derivatives,
 )
@@ -412,17 +412,12 @@ class _CoulombPairs:
         if active is not None and len(ci):
             keep = active[g.batch[ci]]
             ci, cj, qq = ci[keep], cj[keep], qq[keep]
-        e = None
-        if energy:
-            e = self.fixed_energy + coulomb_molecular(
-                pos, self.charges, ci, cj, g.batch, torch.zeros_like(g.pbc), b, self.gamma,
-                self.eps)
-            if self.periodic:
-                e = e + ewald_reciprocal(pos, self.charges, g.batch, g.cell.double(),
-                                         g.kvec_n.double(), g.kvec_batch, self.gamma)
+        e = self.fixed_energy.clone() if energy else None
         if len(ci):
-            gr, h = coulomb_pair_derivatives(pos[cj] - pos[ci], qq, self.gamma, self.eps)
-            s = prob.g.batch[ci]
+            e_pair, gr, h = coulomb_pair_terms(pos[cj] - pos[ci], qq, self.gamma, self.eps)
+            s = g.batch[ci]
+            if energy:
+                e += segment_sum(e_pair, s, b)
             li, lj = self.local_of[ci], self.local_of[cj]
             pi, pj = li >= 0, lj >= 0
             grad.index_add_(0, self.row_of[cj[pj]], gr[pj])
@@ -436,6 +431,11 @@ class _CoulombPairs:
         for s_idx, members, rows, kn in self.periodic:
             if active is not None and not bool(active[s_idx]):
                 continue
+            if energy:
+                e[s_idx] += ewald_reciprocal(
+                    pos[members], self.charges[members], torch.zeros_like(members),
+                    g.cell[s_idx:s_idx + 1].double(), kn,
+                    torch.zeros(len(kn), dtype=torch.long), self.gamma)[0]
             gr, h = ewald_reciprocal_derivatives(
                 pos[members], self.charges[members], g.cell[s_idx].double(), kn, self.gamma,
                 rows,
