@@ -805,7 +805,12 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
     low = bool(opts.float32_above > 0 and g.n_pairs.max() > 0
                and int(g.n_pairs.sum()) >= opts.float32_min_pairs
                and type(model).energy_parts is EMLP.energy_parts)
-    prob32 = _PairProblem(model, g.to(dtype=torch.float32)) if low else prob
+    prob32 = prob
+    if low:
+        # the held core-core filters rounded from float64 (not recomputed in float32)
+        held32 = None if prob.held is None else replace(
+            prob.held, filters=[f.float() for f in prob.held.filters])
+        prob32 = _PairProblem(model, g.to(dtype=torch.float32), held=held32)
     work = prob32 if low else prob
     # plain EMLP: the model evaluations leave out the electrostatics, whose energy and gradient
     # come from the analytic derivatives computed at every iterate anyway (float64)
