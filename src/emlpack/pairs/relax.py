@@ -129,6 +129,30 @@ batch), ~0.38 s the model in the iterations (float32 ~0.23, float64 ~0.11-0.15 o
 setup. A float32 evaluation is ~20 ms for the 64 structures, mostly elementwise passes over the
 4544 free edges x 64 filters (softplus ~1 ms per call) and their backward.
 
+Measured (issue 14, electrostatics out of the model calls): with a plain :class:`EMLP` the
+evaluations are short range (+ field) only (``EMLP.energy_parts(long_range=False)``); the
+electrostatic energy and gradient (float64, also in the float32 phase) come from the pair terms
+that :class:`_CoulombPairs` evaluates at every iterate for ``H_el`` anyway
+(:func:`emlpack.nn.electrostatics.coulomb_pair_terms`; core-core pairs and self energies once),
+and the lumped start differences no longer subtract Coulomb gradients (the autograd
+electrostatics cost 0.5-1.5 ms of every model call); the float32 held core-core filters are
+rounded from the float64 ones. Same benchmark, fmax 1e-4: evaluations 892 -> 893, max 22 -> 23;
+energies within 3.7e-8 eV of the previous code's, within 2.5e-8 eV of the fmax 1e-6 minima
+except the flat acetylene (1.27e-5 eV, as before); reported energies within 2e-12 eV of a
+plain evaluation at the result. Batch CPU: in one process against the old evaluations
+(toggle) ratio 0.954 (median of 50 paired runs); main vs this code in alternated processes (5
+relaxations each, 10 pairs, load ~5): median 0.72 -> 0.64 s (ratio of pairs 0.89).
+Tried and dropped: the start and lumped start from quadratic filters about the start (the
+free edges' filters as ``W0 + W1 d + W2 d^2 / 2``; energy exact at the start): exact
+forward-mode coefficients (:meth:`~emlpack.nn.schnet.SchNet.filter_taylor`) cost 34 ms in
+float32 (1.6 evaluations), central differences at +-0.01 Å from one batched filter evaluation
+~38 ms in the relaxation, the four calls only 20-30 % cheaper there (10 vs 21 ms alone),
+evaluations 898 -> 908: CPU ratio 1.02 (30 paired runs); a hand-written SchNet backward
+(equal time: the calls are bound by ~60 elementwise passes over the (E, K) edge arrays, 0.1-0.4
+ms each, not by autograd; and a faster model would speed up the SciPy baseline alike); the
+Coulomb pair terms scattered from index lists built once (again: 1.5 -> ~1.3 ms for the whole
+batch, 0.46 -> 0.75 ms for 3 structures).
+
 Tried and dropped (issue 14): SchNet filters of the free edges by cubic Hermite interpolation
 from a table of exact values and slopes (spacing 0.002 Å: 2e-11 / 4.5e-10 of max|W| on the
 trained / paper-size fixture weights, dW/dr 1.4e-8 / 1.7e-7), in the iterations, with exact
