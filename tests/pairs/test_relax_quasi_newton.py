@@ -114,6 +114,30 @@ def test_float32_start_reaches_the_float64_minima(trained):
         assert a.energy == pytest.approx(b.energy, abs=1e-6)
 
 
+def test_analytic_electrostatics_path_reaches_the_full_model_minima(trained):
+    """A plain EMLP's evaluations leave the electrostatics to the analytic pair terms; a model
+    class with its own ``energy_parts`` (same energy) is evaluated whole: same minima, energies
+    within 1e-8 eV at fmax 1e-6, and the reported energies are the full model's."""
+    import copy
+
+    from emlpack.nn.potential import EMLP
+
+    class OwnParts(EMLP):
+        def energy_parts(self, *args, **kwargs):
+            return super().energy_parts(*args, **kwargs)
+
+    whole = copy.deepcopy(trained)
+    whole.__class__ = OwnParts
+    starts = _starts("::75")
+    plain = relax_pairs(trained, starts, fmax=1e-6, check_curvature=False, float32_above=0)
+    full = relax_pairs(whole, starts, fmax=1e-6, check_curvature=False)
+    for a, b, s in zip(plain, full, starts, strict=True):
+        assert not a.failed and not b.failed, (a.reason, b.reason)
+        assert a.energy == pytest.approx(b.energy, abs=1e-8)
+        exact = trained.evaluate(s.copy(pairs=a.pairs))["energy"]
+        assert a.energy == pytest.approx(exact, abs=1e-10)
+
+
 def test_bond_rotation_steps():
     """A tangential step turns a pair about the axis through its two nearest cores (both
     distances kept); a small step differs from the straight step by O(|s|^2 / rho); pairs near

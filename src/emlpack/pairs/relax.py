@@ -838,7 +838,8 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
     work = prob32 if low else prob
     # plain EMLP: the model evaluations leave out the electrostatics, whose energy and gradient
     # come from the analytic derivatives computed at every iterate anyway (float64)
-    analytic = type(model).energy_parts is EMLP.energy_parts
+    analytic = (type(model).energy_parts is EMLP.energy_parts
+                and type(model).energy is EMLP.energy)
     lr = not analytic  # whether the model evaluations include the electrostatics
     energy, grad = (t.to(dtype) for t in work.energy_gradient(x.to(work.g.dtype), lr))
     use32 = torch.full((b,), bool(low))
