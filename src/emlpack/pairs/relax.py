@@ -141,7 +141,10 @@ energies within 3.7e-8 eV of the previous code's, within 2.5e-8 eV of the fmax 1
 except the flat acetylene (1.27e-5 eV, as before); reported energies within 2e-12 eV of a
 plain evaluation at the result. Batch CPU: in one process against the old evaluations
 (toggle) ratio 0.954 (median of 50 paired runs); main vs this code in alternated processes (5
-relaxations each, 10 pairs, load ~5): median 0.72 -> 0.64 s (ratio of pairs 0.89).
+relaxations each, 10 pairs, load ~5): median 0.72 -> 0.64 s (ratio of pairs 0.89);
+``benchmarks/relax.py --model trained --threads 1 --repeats 3``, 2 runs alternated at load ~6:
+emlpack CPU 1.60 / 1.71 -> 1.48 / 1.68 s (3 batches), ``speedup_vs_scipy`` 13.7 / 13.1 ->
+14.5 / 14.8, CPU speedup 14.5 / 13.4 -> 15.3 / 15.5 (single runs at this load: 11-18 either way).
 Tried and dropped: the start and lumped start from quadratic filters about the start (the
 free edges' filters as ``W0 + W1 d + W2 d^2 / 2``; energy exact at the start): exact
 forward-mode coefficients (:meth:`~emlpack.nn.schnet.SchNet.filter_taylor`) cost 34 ms in
