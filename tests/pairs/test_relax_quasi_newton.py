@@ -34,28 +34,33 @@ def trained():
 def _electrostatic_reference(model, g, prob, x):
     c = model.config
 
-    def energy(x):
+    def energies(x):
         pos = g.positions.index_put((prob.pair_idx,), x)
         return (
             coulomb_molecular(pos, g.charges, g.coulomb_i, g.coulomb_j, g.batch, ~g.pbc,
                               g.n_structures, c.gamma, c.coulomb_eps)
             + ewald_reciprocal(pos, g.charges, g.batch, g.cell, g.kvec_n, g.kvec_batch, c.gamma)
-        ).sum()
+        )
 
-    return torch.func.grad(energy)(x), torch.func.hessian(energy)(x)
+    def energy(x):
+        return energies(x).sum()
+
+    return energies(x), torch.func.grad(energy)(x), torch.func.hessian(energy)(x)
 
 
 def test_analytic_electrostatic_pair_hessian_equals_autograd(small):
     """Molecules (Gaussian Coulomb) and a crystal (reciprocal Ewald) in one batch: the analytic
-    pair gradient and every pair-pair 3x3 block equal autograd to 1e-10 relative."""
+    pair gradient and every pair-pair 3x3 block equal autograd to 1e-10 relative, the energies
+    the model's electrostatic energies to 1e-12 relative."""
     mol = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), index="60:62")
     crystal = read_structures(shared_path("data/beta_glycine_pbe_wannier.xyz"), index="0:1")
     g = small.graph(mol + crystal, dtype=torch.float64)
     prob = _PairProblem(small, g)
     x = g.positions[prob.pair_idx].clone()
     x = x + 0.05 * torch.sin(torch.arange(x.numel(), dtype=x.dtype)).reshape(x.shape)
-    grad, hess = _CoulombPairs(small, prob)(x)
-    g_ref, h_ref = _electrostatic_reference(small, g, prob, x)
+    grad, hess, energy = _CoulombPairs(small, prob)(x, energy=True)
+    e_ref, g_ref, h_ref = _electrostatic_reference(small, g, prob, x)
+    assert torch.abs(energy - e_ref).max() <= 1e-12 * torch.abs(e_ref).max()
     assert torch.abs(grad - g_ref).max() <= 1e-10 * torch.abs(g_ref).max()
     n = len(x)
     dense = torch.zeros(n, 3, n, 3, dtype=x.dtype)
@@ -107,6 +112,30 @@ def test_float32_start_reaches_the_float64_minima(trained):
         assert not a.failed, a.reason
         assert a.max_force < 1e-6
         assert a.energy == pytest.approx(b.energy, abs=1e-6)
+
+
+def test_analytic_electrostatics_path_reaches_the_full_model_minima(trained):
+    """A plain EMLP's evaluations leave the electrostatics to the analytic pair terms; a model
+    class with its own ``energy_parts`` (same energy) is evaluated whole: same minima, energies
+    within 1e-8 eV at fmax 1e-6, and the reported energies are the full model's."""
+    import copy
+
+    from emlpack.nn.potential import EMLP
+
+    class OwnParts(EMLP):
+        def energy_parts(self, *args, **kwargs):
+            return super().energy_parts(*args, **kwargs)
+
+    whole = copy.deepcopy(trained)
+    whole.__class__ = OwnParts
+    starts = _starts("::75")
+    plain = relax_pairs(trained, starts, fmax=1e-6, check_curvature=False, float32_above=0)
+    full = relax_pairs(whole, starts, fmax=1e-6, check_curvature=False)
+    for a, b, s in zip(plain, full, starts, strict=True):
+        assert not a.failed and not b.failed, (a.reason, b.reason)
+        assert a.energy == pytest.approx(b.energy, abs=1e-8)
+        exact = trained.evaluate(s.copy(pairs=a.pairs))["energy"]
+        assert a.energy == pytest.approx(exact, abs=1e-10)
 
 
 def test_bond_rotation_steps():

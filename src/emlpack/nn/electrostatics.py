@@ -131,6 +131,22 @@ def gaussian_coulomb_radial(
     return phi, d1, d2
 
 
+def coulomb_pair_terms(
+    d: torch.Tensor, qq: torch.Tensor, gamma: float, eps: float = 1e-10
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Energy (E,), gradient (E, 3) and Hessian (E, 3, 3) of ``k_e qq phi(r)`` for the pair
+    vectors ``d = r_j - r_i`` (see :func:`coulomb_pair_derivatives`)."""
+    r = _distance(d)
+    phi, d1, d2 = gaussian_coulomb_radial(r, gamma, eps)
+    u = d / r[:, None]
+    scale = COULOMB_EV_A * qq
+    grad = (scale * d1)[:, None] * u
+    uu = u[:, :, None] * u[:, None, :]
+    eye = torch.eye(3, dtype=d.dtype, device=d.device)
+    hess = scale[:, None, None] * (d2[:, None, None] * uu + (d1 / r)[:, None, None] * (eye - uu))
+    return scale * phi, grad, hess
+
+
 def coulomb_pair_derivatives(
     d: torch.Tensor, qq: torch.Tensor, gamma: float, eps: float = 1e-10
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -138,15 +154,7 @@ def coulomb_pair_derivatives(
     vector ``d = r_j - r_i`` (so ``dE/dr_j = +grad``, ``dE/dr_i = -grad``; the Hessian block is
     ``+H`` on (i,i) and (j,j) and ``-H`` on (i,j) and (j,i)). ``r = sqrt(|d|^2 + 1e-20)`` as in
     :func:`coulomb_molecular`, so both are exact derivatives of the energy it evaluates."""
-    r = _distance(d)
-    _, d1, d2 = gaussian_coulomb_radial(r, gamma, eps)
-    u = d / r[:, None]
-    scale = COULOMB_EV_A * qq
-    grad = (scale * d1)[:, None] * u
-    uu = u[:, :, None] * u[:, None, :]
-    eye = torch.eye(3, dtype=d.dtype, device=d.device)
-    hess = scale[:, None, None] * (d2[:, None, None] * uu + (d1 / r)[:, None, None] * (eye - uu))
-    return grad, hess
+    return coulomb_pair_terms(d, qq, gamma, eps)[1:]
 
 
 def ewald_reciprocal_derivatives(

@@ -116,10 +116,13 @@ class EMLP(nn.Module):
         cell: torch.Tensor | None = None,
         field: torch.Tensor | None = None,
         held: HeldFilters | None = None,
+        long_range: bool = True,
     ) -> dict[str, torch.Tensor]:
         """Energy parts (eV) per structure; ``positions``/``cell``/``field`` override ``g``'s.
         With ``held`` (:meth:`hold_filters`) the held edges' filters are not recomputed: their
-        lengths must be those of ``g`` (frozen parameters only).
+        lengths must be those of ``g`` (frozen parameters only). ``long_range=False``: the
+        electrostatic energy is left out (zero; for callers that add it from its analytic
+        derivatives, e.g. the pair relaxation).
 
         Returns ``energy``, ``energy_short_range``, ``energy_long_range``, ``energy_field``
         (each (B,)) and ``atomic_energies`` (N,).
@@ -139,10 +142,14 @@ class EMLP(nn.Module):
         # Electrostatics always in float64: its pair and self terms cancel to ~1e-2 of their
         # size, which costs float32 models 1e-4 eV; it is cheap next to SchNet.
         p64, q64, c64 = pos.double(), g.charges.double(), cell.double()
-        e_lr = coulomb_molecular(
-            p64, q64, g.coulomb_i, g.coulomb_j, g.batch, ~g.pbc, b, c.gamma, c.coulomb_eps
-        ) + ewald_reciprocal(p64, q64, g.batch, c64, g.kvec_n.double(), g.kvec_batch, c.gamma)
-        e_lr = e_lr.to(pos.dtype)
+        if long_range:
+            e_lr = coulomb_molecular(
+                p64, q64, g.coulomb_i, g.coulomb_j, g.batch, ~g.pbc, b, c.gamma, c.coulomb_eps
+            ) + ewald_reciprocal(p64, q64, g.batch, c64, g.kvec_n.double(), g.kvec_batch,
+                                 c.gamma)
+            e_lr = e_lr.to(pos.dtype)
+        else:
+            e_lr = pos.new_zeros(b)
         e_field = field_energy(p64, q64, g.batch, field.double()).to(pos.dtype)
         return {
             "energy": e_sr + e_lr + e_field,

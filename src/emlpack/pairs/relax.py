@@ -129,6 +129,33 @@ batch), ~0.38 s the model in the iterations (float32 ~0.23, float64 ~0.11-0.15 o
 setup. A float32 evaluation is ~20 ms for the 64 structures, mostly elementwise passes over the
 4544 free edges x 64 filters (softplus ~1 ms per call) and their backward.
 
+Measured (issue 14, electrostatics out of the model calls): with a plain :class:`EMLP` the
+evaluations are short range (+ field) only (``EMLP.energy_parts(long_range=False)``); the
+electrostatic energy and gradient (float64, also in the float32 phase) come from the pair terms
+that :class:`_CoulombPairs` evaluates at every iterate for ``H_el`` anyway
+(:func:`emlpack.nn.electrostatics.coulomb_pair_terms`; core-core pairs and self energies once),
+and the lumped start differences no longer subtract Coulomb gradients (the autograd
+electrostatics cost 0.5-1.5 ms of every model call); the float32 held core-core filters are
+rounded from the float64 ones. Same benchmark, fmax 1e-4: evaluations 892 -> 893, max 22 -> 23;
+energies within 3.7e-8 eV of the previous code's, within 2.5e-8 eV of the fmax 1e-6 minima
+except the flat acetylene (1.27e-5 eV, as before); reported energies within 2e-12 eV of a
+plain evaluation at the result. Batch CPU: in one process against the old evaluations
+(toggle) ratio 0.954 (median of 50 paired runs); main vs this code in alternated processes (5
+relaxations each, 10 pairs, load ~5): median 0.72 -> 0.64 s (ratio of pairs 0.89);
+``benchmarks/relax.py --model trained --threads 1 --repeats 3``, 2 runs alternated at load ~6:
+emlpack CPU 1.60 / 1.71 -> 1.48 / 1.68 s (3 batches), ``speedup_vs_scipy`` 13.7 / 13.1 ->
+14.5 / 14.8, CPU speedup 14.5 / 13.4 -> 15.3 / 15.5 (single runs at this load: 11-18 either way).
+Tried and dropped: the start and lumped start from quadratic filters about the start (the
+free edges' filters as ``W0 + W1 d + W2 d^2 / 2``; energy exact at the start): exact
+forward-mode coefficients (:meth:`~emlpack.nn.schnet.SchNet.filter_taylor`) cost 34 ms in
+float32 (1.6 evaluations), central differences at +-0.01 Å from one batched filter evaluation
+~38 ms in the relaxation, the four calls only 20-30 % cheaper there (10 vs 21 ms alone),
+evaluations 898 -> 908: CPU ratio 1.02 (30 paired runs); a hand-written SchNet backward
+(equal time: the calls are bound by ~60 elementwise passes over the (E, K) edge arrays, 0.1-0.4
+ms each, not by autograd; and a faster model would speed up the SciPy baseline alike); the
+Coulomb pair terms scattered from index lists built once (again: 1.5 -> ~1.3 ms for the whole
+batch, 0.46 -> 0.75 ms for 3 structures).
+
 Tried and dropped (issue 14): SchNet filters of the free edges by cubic Hermite interpolation
 from a table of exact values and slopes (spacing 0.002 Å: 2e-11 / 4.5e-10 of max|W| on the
 trained / paper-size fixture weights, dW/dr 1.4e-8 / 1.7e-7), in the iterations, with exact
@@ -161,7 +188,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from emlpack.nn.electrostatics import coulomb_pair_derivatives, ewald_reciprocal_derivatives
+from emlpack.nn.electrostatics import (
+    coulomb_molecular,
+    coulomb_pair_terms,
+    ewald_reciprocal,
+    ewald_reciprocal_derivatives,
+)
 from emlpack.nn.graph import Graph
 from emlpack.nn.potential import EMLP
 from emlpack.nn.scatter import segment_sum
@@ -288,16 +320,22 @@ class _PairProblem:
 
         self._grad = torch.func.grad(total_energy)
 
-    def energy(self, x: torch.Tensor) -> torch.Tensor:
-        """Energies (B,) with the pairs at ``x`` (P_total, 3)."""
+    def energy(self, x: torch.Tensor, long_range: bool = True) -> torch.Tensor:
+        """Energies (B,) with the pairs at ``x`` (P_total, 3); ``long_range=False``: without
+        the electrostatic energy (plain :class:`EMLP` only)."""
         pos = self.g.positions.index_put((self.pair_idx,), x)
+        if not long_range:
+            return self.model.energy_parts(self.g, pos, held=self.held,
+                                           long_range=False)["energy"]
         if self.held is None:
             return self.model.energy(self.g, pos)
         return self.model.energy(self.g, pos, held=self.held)
 
-    def energy_gradient(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def energy_gradient(
+        self, x: torch.Tensor, long_range: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         x = x.detach().requires_grad_(True)
-        e = self.energy(x)
+        e = self.energy(x, long_range)
         (grad,) = torch.autograd.grad(e.sum(), x)
         return e.detach(), grad.detach()
 
@@ -356,8 +394,9 @@ class _PairProblem:
 class _CoulombPairs:
     """Analytic electrostatics of the pairs at fixed cores: the pair gradient (P_total, 3) and
     the padded pair-block Hessians (B, 3 Pmax, 3 Pmax) of the Gaussian-charge Coulomb energy
-    (molecules) and the reciprocal Ewald energy (crystals, fixed cell), float64. The field
-    energy is linear in the positions and adds nothing to either difference or curvature."""
+    (molecules) and the reciprocal Ewald energy (crystals, fixed cell), and on request the
+    energy (B,), float64. The field energy is linear in the positions and adds nothing to
+    either difference or curvature."""
 
     def __init__(self, model: EMLP, prob: _PairProblem) -> None:
         g = prob.g
@@ -373,6 +412,10 @@ class _CoulombPairs:
         self.qq = q[self.ci] * q[self.cj]
         self.positions = g.positions.detach().double()
         self.charges = q
+        # the energy of the core-core Coulomb pairs and the self energies do not change
+        self.fixed_energy = coulomb_molecular(
+            self.positions, q, g.coulomb_i[~keep], g.coulomb_j[~keep], g.batch, ~g.pbc,
+            g.n_structures, self.gamma, self.eps)
         self.periodic = []
         for b in torch.unique(g.kvec_batch).tolist():
             members = torch.nonzero(g.batch == b).squeeze(1)
@@ -380,22 +423,28 @@ class _CoulombPairs:
             self.periodic.append((b, members, rows, g.kvec_n[g.kvec_batch == b].double()))
 
     def __call__(
-        self, x: torch.Tensor, active: torch.Tensor | None = None, hessian: bool = True
-    ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Gradient and Hessians at ``x``; with ``active`` (B,) bool only those structures are
-        computed (the others' entries are zero); ``hessian=False``: the gradient only (None)."""
+        self, x: torch.Tensor, active: torch.Tensor | None = None, hessian: bool = True,
+        energy: bool = False,
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+        """Gradient, Hessians and energies at ``x``; with ``active`` (B,) bool only those
+        structures are computed (the others' entries are zero, their energies meaningless);
+        ``hessian=False``: no Hessians (None); ``energy=False``: no energies (None)."""
         prob = self.prob
-        b, n = prob.g.n_structures, prob.n_max
+        g = prob.g
+        b, n = g.n_structures, prob.n_max
         pos = self.positions.index_put((prob.pair_idx,), x.detach().double())
         grad = pos.new_zeros(len(prob.pair_idx), 3)
         hess = pos.new_zeros(b, n, n, 3, 3) if hessian else None
         ci, cj, qq = self.ci, self.cj, self.qq
         if active is not None and len(ci):
-            keep = active[prob.g.batch[ci]]
+            keep = active[g.batch[ci]]
             ci, cj, qq = ci[keep], cj[keep], qq[keep]
+        e = self.fixed_energy.clone() if energy else None
         if len(ci):
-            gr, h = coulomb_pair_derivatives(pos[cj] - pos[ci], qq, self.gamma, self.eps)
-            s = prob.g.batch[ci]
+            e_pair, gr, h = coulomb_pair_terms(pos[cj] - pos[ci], qq, self.gamma, self.eps)
+            s = g.batch[ci]
+            if energy:
+                e += segment_sum(e_pair, s, b)
             li, lj = self.local_of[ci], self.local_of[cj]
             pi, pj = li >= 0, lj >= 0
             grad.index_add_(0, self.row_of[cj[pj]], gr[pj])
@@ -406,10 +455,14 @@ class _CoulombPairs:
             both = pi & pj
             hess.index_put_((s[both], li[both], lj[both]), -h[both], accumulate=True)
             hess.index_put_((s[both], lj[both], li[both]), -h[both], accumulate=True)
-        g = prob.g
         for s_idx, members, rows, kn in self.periodic:
             if active is not None and not bool(active[s_idx]):
                 continue
+            if energy:
+                e[s_idx] += ewald_reciprocal(
+                    pos[members], self.charges[members], torch.zeros_like(members),
+                    g.cell[s_idx:s_idx + 1].double(), kn,
+                    torch.zeros(len(kn), dtype=torch.long), self.gamma)[0]
             gr, h = ewald_reciprocal_derivatives(
                 pos[members], self.charges[members], g.cell[s_idx].double(), kn, self.gamma,
                 rows,
@@ -419,9 +472,9 @@ class _CoulombPairs:
                 m = len(rows)
                 hess[s_idx, :m, :m] += h.permute(0, 2, 1, 3)
         if not hessian:
-            return grad.to(x.dtype), None
+            return grad.to(x.dtype), None, e
         hess = hess.permute(0, 1, 3, 2, 4).reshape(b, 3 * n, 3 * n)
-        return grad.to(x.dtype), hess
+        return grad.to(x.dtype), hess, e
 
 
 def _subgraph(g: Graph, keep: torch.Tensor) -> Graph:
@@ -485,7 +538,7 @@ class _ActiveEvaluator:
         self.members = torch.ones(prob.g.n_structures, dtype=torch.bool)
         self.sub, self.rows = prob, None
 
-    def __call__(self, x, active, energy, grad):
+    def __call__(self, x, active, energy, grad, long_range=True):
         if int(active.sum()) < self.fraction * int(self.members.sum()) or bool(
             (active & ~self.members).any()
         ):
@@ -494,8 +547,8 @@ class _ActiveEvaluator:
                                     held=_held_subset(self.full, active))
             self.rows = active[self.full.pair_batch]
         if self.rows is None:
-            return self.full.energy_gradient(x)
-        e_sub, g_sub = self.sub.energy_gradient(x[self.rows])
+            return self.full.energy_gradient(x, long_range)
+        e_sub, g_sub = self.sub.energy_gradient(x[self.rows], long_range)
         e = energy.clone()
         e[self.members] = e_sub
         gr = grad.clone()
@@ -779,12 +832,25 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
     low = bool(opts.float32_above > 0 and g.n_pairs.max() > 0
                and int(g.n_pairs.sum()) >= opts.float32_min_pairs
                and type(model).energy_parts is EMLP.energy_parts)
-    prob32 = _PairProblem(model, g.to(dtype=torch.float32)) if low else prob
+    prob32 = prob
+    if low:
+        # the held core-core filters rounded from float64 (not recomputed in float32)
+        held32 = None if prob.held is None else replace(
+            prob.held, filters=[f.float() for f in prob.held.filters])
+        prob32 = _PairProblem(model, g.to(dtype=torch.float32), held=held32)
     work = prob32 if low else prob
-    energy, grad = (t.to(dtype) for t in work.energy_gradient(x.to(work.g.dtype)))
+    # plain EMLP: the model evaluations leave out the electrostatics, whose energy and gradient
+    # come from the analytic derivatives computed at every iterate anyway (float64)
+    analytic = (type(model).energy_parts is EMLP.energy_parts
+                and type(model).energy is EMLP.energy)
+    lr = not analytic  # whether the model evaluations include the electrostatics
+    energy, grad = (t.to(dtype) for t in work.energy_gradient(x.to(work.g.dtype), lr))
     use32 = torch.full((b,), bool(low))
     exact64 = ~use32  # energy and gradient are float64 values
-    gc, hc = coulomb(x)
+    gc, hc, e_coulomb = coulomb(x, energy=analytic)
+    g_short = grad if analytic else grad - gc
+    if analytic:
+        energy, grad = energy + e_coulomb, grad + gc
     m = 3 * prob.n_max
     short = torch.zeros(b, m, m, dtype=dtype)
     n_eval = torch.ones(b, dtype=torch.long)
@@ -797,7 +863,7 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
     converged = (fmax < opts.fmax) & exact64 | (g.n_pairs == 0)
     if opts.short_range_start == "lumped" and not bool(converged.all()):
         # float32: a larger difference step (measured: 3e-4 Å gives 3e-4 relative error)
-        short = _lumped_short_range(work, coulomb, x, grad, 3e-4 if low else 1e-4)
+        short = _lumped_short_range(work, coulomb, x, g_short, 3e-4 if low else 1e-4, lr)
         n_eval += 3 * (~converged).long()
     evaluate = _ActiveEvaluator(model, prob)
     evaluate32 = _ActiveEvaluator(model, prob32)
@@ -851,12 +917,15 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         in64 = active & ~in32
         e_new, g_new = energy, grad
         if bool(in64.any()):
-            e_new, g_new = evaluate(x_new, in64, energy, grad)
+            e_new, g_new = evaluate(x_new, in64, energy, grad, lr)
         if bool(in32.any()):
-            e32, g32 = evaluate32(x_new.float(), in32, energy.float(), grad.float())
+            e32, g32 = evaluate32(x_new.float(), in32, energy.float(), grad.float(), lr)
             e_new = torch.where(in32, e32.to(dtype), e_new)
             g_new = torch.where(in32[prob.pair_batch, None], g32.to(dtype), g_new)
-        gc_new, hc_new = coulomb(x_new, active)
+        gc_new, hc_new, ec_new = coulomb(x_new, active, energy=analytic)
+        if analytic:
+            e_new = torch.where(active, e_new + ec_new, energy)
+            g_new = torch.where(active[prob.pair_batch, None], g_new + gc_new, grad)
         n_eval += active.long()
         iters += moving.long()
         slope = segment_sum((grad * step).sum(1), prob.pair_batch, b)
@@ -958,22 +1027,24 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
                     fmax, min_curv, opts)
 
 
-def _lumped_short_range(prob, coulomb, x, grad, step=1e-4):
+def _lumped_short_range(prob, coulomb, x, g_short, step=1e-4, long_range=True):
     """Block-diagonal (3x3 per pair) estimate of the short-range pair Hessian from three
-    forward differences of the gradient (probe: one Cartesian direction on every pair at once,
-    ``step`` Å; three batched energy+gradient evaluations in ``prob``'s dtype, differences in
-    ``x``'s): each pair's block is the row sum of its short-range couplings (off-diagonal
-    blocks lumped onto it)."""
+    forward differences of the short-range gradient ``g_short`` (probe: one Cartesian
+    direction on every pair at once, ``step`` Å; three batched energy+gradient evaluations in
+    ``prob``'s dtype, differences in ``x``'s; ``long_range``: the evaluations include the
+    electrostatics, taken off with ``coulomb``): each pair's block is the row sum of its
+    short-range couplings (off-diagonal blocks lumped onto it)."""
     n = prob.n_max
     b = prob.g.n_structures
-    gc, _ = coulomb(x, hessian=False)
     blocks = x.new_zeros(len(x), 3, 3)
     for c in range(3):
         shifted = x.clone()
         shifted[:, c] += step
-        _, g_shift = prob.energy_gradient(shifted.to(prob.g.dtype))
-        gc_shift, _ = coulomb(shifted, hessian=False)
-        blocks[:, :, c] = ((g_shift.to(x.dtype) - grad) - (gc_shift - gc)) / step
+        _, g_shift = prob.energy_gradient(shifted.to(prob.g.dtype), long_range)
+        g_shift = g_shift.to(x.dtype)
+        if long_range:
+            g_shift = g_shift - coulomb(shifted, hessian=False)[0]
+        blocks[:, :, c] = (g_shift - g_short) / step
     blocks = 0.5 * (blocks + blocks.transpose(1, 2))
     out = x.new_zeros(b, n, n, 3, 3)
     out[prob.pair_batch, prob.local, prob.local] = blocks
