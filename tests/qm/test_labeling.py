@@ -274,3 +274,30 @@ def test_finite_difference_hessian_resumes_from_its_cache(tmp_path):
     again = finite_difference_hessian(atoms, cache=cache)
     assert Counting.calls == 2
     np.testing.assert_allclose(again, first, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("escapes", [0, 3])
+def test_preparation_steps_off_a_saddle_point(escapes, monkeypatch):
+    """Planar NH3 is a GFN2-xTB saddle (the umbrella inversion) on which BFGS stays, as its
+    forces have no out-of-plane part: without escapes the preparation returns it (and the
+    sampling refuses it); with them it steps down the umbrella mode to the pyramid."""
+    from tests.conftest import require
+
+    require("tblite")
+    from emlpack.qm import labeling
+    from emlpack.qm.sampling import Molecule, has_negative_curvature, normal_modes
+
+    monkeypatch.setattr(labeling, "SADDLE_ESCAPES", escapes)
+    a = 2 * np.pi / 3
+    h = np.array([[np.cos(i * a), np.sin(i * a), 0.0] for i in range(3)])
+    planar = Molecule("planar-nh3", np.array([7, 1, 1, 1]),
+                      np.vstack([np.zeros(3), 1.0 * h]),
+                      np.array([[0, 1, 1], [0, 2, 1], [0, 3, 1]]), np.zeros(3, dtype=bool))
+    mol = labeling.prepare_task(planar, "gfn2-xtb", optimize=True, fmax=0.01, seed=0,
+                                threads=1)
+    k, _ = normal_modes(mol.numbers, mol.positions, mol.hessian)
+    height = abs(mol.positions[0, 2] - mol.positions[1:, 2].mean())
+    if escapes:
+        assert not has_negative_curvature(k) and height > 0.2
+    else:
+        assert has_negative_curvature(k) and height < 1e-6

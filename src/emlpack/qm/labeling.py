@@ -32,7 +32,15 @@ from emlpack.qm.executor import Executor
 from emlpack.qm.levels import parse_level
 from emlpack.qm.pyscf_labeler import LabelingError, PySCFLabeler
 from emlpack.qm.recipe import Configuration, configurations
-from emlpack.qm.sampling import PROBES, Molecule, SamplingError, molecule_from_smiles
+from emlpack.qm.sampling import (
+    PROBES,
+    Molecule,
+    SamplingError,
+    has_negative_curvature,
+    masses_of,
+    molecule_from_smiles,
+    normal_modes,
+)
 from emlpack.units import ANGSTROM_IN_BOHR, HARTREE
 
 log = logging.getLogger(__name__)
@@ -146,6 +154,11 @@ def pyscf_hessian(labeler: PySCFLabeler, numbers, positions) -> np.ndarray:
 
 #: preparation levels computed with GFN-xTB (package ``tblite``) instead of PySCF
 XTB_LEVELS = {"gfn2-xtb": "GFN2-xTB", "gfn1-xtb": "GFN1-xTB"}
+#: a preparation that stops on a saddle point steps down its softest mode (largest atom
+#: displacement SADDLE_STEP Å) and optimises again, at most SADDLE_ESCAPES times (mini-eqm7:
+#: 2 of 112 molecules stopped on GFN2-xTB saddles, -0.06 and -0.11 eV/Å^2/amu)
+SADDLE_ESCAPES = 3
+SADDLE_STEP = 0.1
 
 
 def preparation_level_name(spec: str | None) -> str:
@@ -213,21 +226,31 @@ def prepare_task(source, level: str, optimize: bool, fmax: float, seed: int,
         os.environ["OMP_NUM_THREADS"] = str(threads)
     atoms = Atoms(numbers=mol.numbers, positions=mol.positions)
     atoms.calc = _preparation_calculator(level, threads)
-    if optimize and len(mol.numbers) > 1:
-        from ase.optimize import BFGS
-
-        opt = BFGS(atoms, logfile=None)
-        if not opt.run(fmax=fmax, steps=300):
-            raise SamplingError(f"{mol.name}: geometry optimisation did not converge")
-    mol.positions = atoms.positions.copy()
     n = 3 * len(mol.numbers)
-    if not hessian:
-        mol.hessian = np.zeros((n, n))
-    elif level in XTB_LEVELS:
-        mol.hessian = finite_difference_hessian(atoms)
-    else:
-        mol.hessian = pyscf_hessian(PySCFLabeler(level, threads=threads), mol.numbers,
-                                    mol.positions)
+    for attempt in range(SADDLE_ESCAPES + 1):
+        if optimize and len(mol.numbers) > 1:
+            from ase.optimize import BFGS
+
+            opt = BFGS(atoms, logfile=None)
+            if not opt.run(fmax=fmax, steps=300):
+                raise SamplingError(f"{mol.name}: geometry optimisation did not converge")
+        mol.positions = atoms.positions.copy()
+        if not hessian:
+            mol.hessian = np.zeros((n, n))
+            return mol
+        if level in XTB_LEVELS:
+            mol.hessian = finite_difference_hessian(atoms)
+        else:
+            mol.hessian = pyscf_hessian(PySCFLabeler(level, threads=threads), mol.numbers,
+                                        mol.positions)
+        k, modes = normal_modes(mol.numbers, mol.positions, mol.hessian)
+        if not optimize or not has_negative_curvature(k) or attempt == SADDLE_ESCAPES:
+            return mol  # a remaining saddle is refused by the sampling, with its reason
+        # a saddle point (BFGS stops on zero forces): step down the softest mode, optimise again
+        dx = (modes[:, 0] / np.repeat(np.sqrt(masses_of(mol.numbers)), 3)).reshape(-1, 3)
+        atoms.positions = atoms.positions + SADDLE_STEP * dx / np.linalg.norm(dx, axis=1).max()
+        log.info("%s: saddle point at %s (curvature %.3g eV/Å^2/amu), stepping %.2f Å down"
+                 " its mode and optimising again", mol.name, level, k[0], SADDLE_STEP)
     return mol
 
 

@@ -199,6 +199,13 @@ class NMSSample:
     harmonic_energy: float
 
 
+def has_negative_curvature(k: np.ndarray) -> bool:
+    """True when the force constants ``k`` (eV/(Å^2 amu), :func:`normal_modes`) have one below
+    -1e-3 of the largest magnitude (or of 1): a saddle point, not a minimum."""
+    k = np.asarray(k, dtype=float)
+    return bool(len(k)) and bool(np.any(k < -1e-3 * max(abs(k).max(), 1.0)))
+
+
 def normal_mode_sample(numbers, positions, hessian, temperature: float,
                        rng: np.random.Generator, n_modes: int | None = None,
                        min_force_constant: float = MIN_MODE_FORCE_CONSTANT,
@@ -213,7 +220,7 @@ def normal_mode_sample(numbers, positions, hessian, temperature: float,
     k, modes = normal_modes(numbers, positions, hessian) if modes is None else modes
     if len(k) == 0:
         raise SamplingError("no vibrational modes (a single atom?)")
-    if np.any(k < -1e-3 * max(abs(k).max(), 1.0)):
+    if has_negative_curvature(k):
         raise SamplingError(
             f"Hessian has negative curvature ({k.min():.3g} eV/Å^2/amu): not at a minimum"
         )
