@@ -146,6 +146,37 @@ def test_a_changed_field_distribution_continues_in_a_new_store(tmp_path):
     assert "- fields: 7 configurations uniform in the ball" in card
 
 
+def test_retry_failed_labels_recorded_failures_once_their_cause_is_fixed(tmp_path,
+                                                                        monkeypatch):
+    """A molecule whose sampling failed is recorded as failed (its keys are finished); after a
+    fix, ``retry_failed`` labels it, the failure records stay in their shard, and the card
+    counts them as resolved instead of as failures."""
+    from emlpack.qm import labeling
+    from emlpack.qm.sampling import SamplingError
+
+    folder = _tiny_campaign(tmp_path / "c")
+    real = labeling.configurations
+
+    def broken(mol, *args, **kwargs):
+        if mol.name == "m0":
+            raise SamplingError("Hessian has negative curvature (-0.1 eV/Å^2/amu): not at a"
+                                " minimum")
+        return real(mol, *args, **kwargs)
+
+    monkeypatch.setattr(labeling, "configurations", broken)
+    out = campaign.run_campaign(folder, workers=0, progress=False)
+    assert out["new_records"] == 4 and out["new_failures"] == 4
+    assert "failures: 4 (4 × Hessian has negative curvature" in (folder / "README.md").read_text()
+    monkeypatch.setattr(labeling, "configurations", real)
+    assert campaign.run_campaign(folder, workers=0, progress=False)["new_records"] == 0
+    out = campaign.run_campaign(folder, workers=0, progress=False, retry_failed=True)
+    assert out["new_records"] == 4
+    data = read_shards(folder)
+    assert len(data.structures) == 8 and len(data.failures) == 4
+    card = (folder / "README.md").read_text()
+    assert "- failures: 0; 4 earlier failures labeled on a retry" in card
+
+
 def test_sigterm_turns_finished_labels_into_a_shard(tmp_path, monkeypatch):
     """``kill PID`` (the end of a session) stops the run like Ctrl-C, and the labels finished
     so far become a shard before it exits."""

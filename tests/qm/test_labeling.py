@@ -301,3 +301,34 @@ def test_preparation_steps_off_a_saddle_point(escapes, monkeypatch):
         assert not has_negative_curvature(k) and height > 0.2
     else:
         assert has_negative_curvature(k) and height < 1e-6
+
+
+def test_a_cached_saddle_point_preparation_is_prepared_again(tmp_path):
+    """A preparation cached before preparations stepped off saddle points (planar NH3 with
+    its negative umbrella curvature) is not reused: the molecule is prepared again, labeled
+    from the pyramid, and the cached file is left as it was (written once)."""
+    from emlpack._files import write_npz_atomic
+    from emlpack.qm.labeling import preparation_level_name, run_labeling
+
+    recipe = load_recipe(overrides=["level=tiny", "hydrides=false", "boys_starts=1"],
+                         samples_per_molecule=1)
+    a = 2 * np.pi / 3
+    planar = np.vstack([np.zeros(3), [[np.cos(i * a), np.sin(i * a), 0.0] for i in range(3)]])
+    hessian = np.eye(12)
+    hessian[2::3, 2::3] -= 3.0  # out-of-plane block: negative curvature
+    prep = tmp_path / "prepared"
+    prep.mkdir()
+    cached = prep / "nh3.npz"
+    write_npz_atomic(cached, numbers=np.array([7, 1, 1, 1]), positions=planar,
+                     bonds=np.array([[0, 1, 1], [0, 2, 1], [0, 3, 1]]),
+                     ring_bonds=np.zeros(3, dtype=bool), hessian=hessian, smiles="N",
+                     level=preparation_level_name("tiny"))
+    before = cached.read_bytes()
+    summary = run_labeling([("nh3", "N")], tmp_path / "s.h5", recipe, workers=0,
+                           progress=False, prep_dir=prep)
+    assert summary.n_new == 1 and summary.n_failed_new == 0
+    with DatasetStore(tmp_path / "s.h5", "r") as store:
+        s = next(iter(store))
+    height = abs(s.positions[0, 2] - s.positions[1:, 2].mean())
+    assert height > 0.15  # not the planar saddle (NMS moves atoms by ~0.05 Å)
+    assert cached.read_bytes() == before

@@ -129,6 +129,8 @@ def add_campaign(sub) -> None:
                     help="finished labels become a new shard this often (default 20)")
     pr.add_argument("--commit", action="store_true", help="git-commit each new shard")
     pr.add_argument("--quiet", action="store_true", help="no progress bar")
+    pr.add_argument("--retry-failed", action="store_true",
+                    help="label the recorded failures again (e.g. after a fix of their cause)")
     pr.set_defaults(resumable=True)
     pc = csub.add_parser("card", help="regenerate README.md from the shards")
     pc.add_argument("folder")
@@ -152,7 +154,8 @@ def add_campaign(sub) -> None:
                 out = campaign.run_campaign(args.folder, workers=args.workers,
                                             threads=args.threads, hours=args.hours,
                                             shard_minutes=args.shard_minutes,
-                                            commit=args.commit, progress=not args.quiet)
+                                            commit=args.commit, progress=not args.quiet,
+                                            retry_failed=args.retry_failed)
                 print(f"{args.folder}: {out['new_records']} new configurations,"
                       f" {out['new_failures']} new failures, {len(out['shards'])} shards"
                       f" in {out['wall_s'] / 3600:.2f} h")

@@ -128,10 +128,11 @@ def read_shards(folder: str | Path) -> ShardedData:
     return ShardedData(structures, hydrides, molecules, split_of, failures, paths, metadata)
 
 
-def finished_keys(folder: str | Path) -> set[str]:
-    """Keys of every record and recorded failure in the shards of ``folder``."""
+def finished_keys(folder: str | Path, failures: bool = True) -> set[str]:
+    """Keys of every record (and, with ``failures``, every recorded failure) in the shards of
+    ``folder``."""
     keys: set[str] = set()
     for path in shard_paths(folder):
         with DatasetStore(path, "r") as store:
-            keys |= store.done_keys()
+            keys |= store.done_keys() if failures else set(store.keys())
     return keys

@@ -228,8 +228,9 @@ def export_shard(folder: str | Path, store: DatasetStore, run_info: dict) -> Pat
     """
     folder = Path(folder)
     have = finished_keys(folder)
+    labeled = finished_keys(folder, failures=False)  # a retried failure's label is new
     keys = store.keys()
-    new_idx = [i for i, k in enumerate(keys) if k not in have]
+    new_idx = [i for i, k in enumerate(keys) if k not in labeled]
     new_fail = [f for f in store.failures() if f["key"] not in have and f["key"] not in keys]
     if not new_idx and not new_fail:
         return None
@@ -272,7 +273,8 @@ def git_commit(folder: Path, paths: list[Path], message: str, tries: int = 5) ->
 
 def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = None,
                  hours: float | None = None, shard_minutes: float = 20.0,
-                 commit: bool = False, progress: bool = True) -> dict:
+                 commit: bool = False, progress: bool = True,
+                 retry_failed: bool = False) -> dict:
     """Label the campaign's molecules in order, into new shards every ``shard_minutes``.
 
     Args:
@@ -281,6 +283,9 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
         hours: stop after this wall time (finished labels are kept); None: until done.
         shard_minutes: how often finished labels become a shard (and a commit).
         commit: commit each new shard, the prepared molecules and the card to git.
+        retry_failed: label the keys of recorded failures again (their failure records stay
+            in their shards; a key that fails again is not recorded twice, one labeled now
+            counts as resolved on the card).
     Returns a summary dict (new records, failures, shards written, wall time).
     """
     from emlpack.qm.labeling import run_labeling
@@ -302,7 +307,7 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
                 if commit:
                     git_commit(folder, [folder / SHARD_DIR],
                                f"{settings.get('name', folder.name)}: shard {shard.stem}")
-    done = finished_keys(folder)
+    done = finished_keys(folder, failures=not retry_failed)
     t0 = time.time()
     state = {"last": time.monotonic(), "shards": [], "since": time.time()}
     run = {"host": socket.gethostname(), "cpus": os.cpu_count() or 1, "workers": workers,
@@ -337,7 +342,8 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
         try:
             summary = run_labeling(sources, work, recipe, workers=workers, progress=progress,
                                    threads=threads, prep_dir=folder / "prepared",
-                                   exclude_keys=done, on_stored=on_stored)
+                                   exclude_keys=done, on_stored=on_stored,
+                                   retry_failed=retry_failed)
         finally:  # also on Ctrl-C or SIGTERM: the finished labels become a last shard
             with DatasetStore(work, "a") as store:
                 flush(store)
@@ -390,8 +396,11 @@ def campaign_statistics(folder: str | Path) -> dict:
         entry = fields.setdefault(name, {"configurations": 0, "shards": []})
         entry["configurations"] += per_shard.get(str(path), 0)
         entry["shards"].append(path.stem)
+    labeled = {str(s.info.get("key", "")) for s in data.structures}
+    labeled |= {str(h.info.get("key", "")) for h in (data.hydrides or {}).get("structures", [])}
+    unresolved = [f for f in data.failures if f["key"] not in labeled]
     reasons: dict[str, int] = {}
-    for f in data.failures:
+    for f in unresolved:
         reason = f["reason"].split(":")[0][:80]
         reasons[reason] = reasons.get(reason, 0) + 1
     return {
@@ -403,7 +412,8 @@ def campaign_statistics(folder: str | Path) -> dict:
         "molecules_listed": len(data.molecules),
         "hydrides": sorted(h.info["molecule_id"] for h in data.hydrides["structures"])
         if data.hydrides else [],
-        "n_failures": len(data.failures),
+        "n_failures": len(unresolved),
+        "n_failures_resolved": len(data.failures) - len(unresolved),
         "failure_reasons": reasons,
         "field_distributions": fields,
         "n_shards": len(data.shards),
@@ -480,7 +490,9 @@ def write_card(folder: str | Path) -> Path:
           if len(stats["field_distributions"]) > 1 else []),
         f"- failures: {stats['n_failures']}"
         + ("" if not stats["failure_reasons"] else " (" + "; ".join(
-            f"{v} × {k}" for k, v in stats["failure_reasons"].items()) + ")") + ";",
+            f"{v} × {k}" for k, v in stats["failure_reasons"].items()) + ")")
+        + (f"; {stats['n_failures_resolved']} earlier failures labeled on a retry"
+           " (`--retry-failed`)" if stats["n_failures_resolved"] else "") + ";",
         f"- labeling wall time: {stats['wall_hours']:.2f} h"
         + (f", {stats['configurations_per_hour']:.1f} configurations per hour"
            if stats["configurations_per_hour"] else "")

@@ -321,9 +321,16 @@ def _load_prepared(prep_dir: Path, name: str, level: str) -> Molecule | None:
     with np.load(path) as d:
         if str(d["level"]) != level:
             return None
-        return Molecule(name=name, numbers=d["numbers"], positions=d["positions"],
-                        bonds=d["bonds"], ring_bonds=d["ring_bonds"], hessian=d["hessian"],
-                        smiles=str(d["smiles"]))
+        mol = Molecule(name=name, numbers=d["numbers"], positions=d["positions"],
+                       bonds=d["bonds"], ring_bonds=d["ring_bonds"], hessian=d["hessian"],
+                       smiles=str(d["smiles"]))
+    if len(mol.numbers) > 1 and np.any(mol.hessian) and has_negative_curvature(
+            normal_modes(mol.numbers, mol.positions, mol.hessian)[0]):
+        # a saddle point kept before preparations stepped off them (SADDLE_ESCAPES): prepare
+        # again (deterministic, seconds at GFN2-xTB; the file is written once, never replaced)
+        log.info("%s: the cached preparation %s is a saddle point; preparing again", name, path)
+        return None
+    return mol
 
 
 #: Dask priorities: labels of prepared molecules run before the next preparation
