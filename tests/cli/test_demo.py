@@ -86,3 +86,24 @@ def test_report_names_configurations_by_key_and_formula(tmp_path):
     assert "| H2O/0003 | H2O | 2.200 |" in text
     assert "record 3" not in text
     assert "is not installed" in text            # no pretrained model: said, not hidden
+
+
+def test_the_demo_molecule_is_compared_with_its_dft_reference():
+    """Aziridine's committed DFT reference (the labels' level) is shown beside the ensemble's
+    values, with the polarizability ratio and a pointer when it is off by more than 20 %."""
+    import json
+
+    from emlpack.cli.demo import PRETRAINED_REFERENCE, PRETRAINED_SMILES, ROOT, _pretrained_lines
+
+    ref = json.loads((ROOT / PRETRAINED_REFERENCE).read_text())
+    alpha = ref["polarizability_isotropic_bohr3"]
+    freqs = np.array(ref["frequencies_cm-1"]) + 10.0
+    step = {"name": "mini-eqm7", "smiles": PRETRAINED_SMILES, "status": "done", "commands": [],
+            "polarizability": {"polarizability_isotropic_bohr3": 2.5 * alpha,
+                               "dipole_norm_debye": 1.5, "warnings": []},
+            "ir": {"frequencies_cm-1": freqs.tolist(), "warnings": []}}
+    text = "\n".join(_pretrained_lines(step))
+    assert f"isotropic polarizability {alpha:.2f} bohr³ (the ensemble's is 2.50x that)" in text
+    assert "differ by 10 cm⁻¹ on average" in text and "docs/pretrained.md" in text
+    step["polarizability"]["polarizability_isotropic_bohr3"] = 1.05 * alpha
+    assert "docs/pretrained.md" not in "\n".join(_pretrained_lines(step))
