@@ -298,7 +298,10 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
         if time.time() - tmp.stat().st_mtime > 3600:
             tmp.unlink()  # left by a run killed while writing (never a finished file)
     work = work_store_path(folder, recipe)
-    for other in sorted((folder / "work").glob(f"labels-{socket.gethostname()}*.h5")):
+    host = socket.gethostname()
+    earlier = [folder / "work" / f"labels-{host}.h5",
+               *sorted((folder / "work").glob(f"labels-{host}-*.h5"))]
+    for other in (p for p in earlier if p.exists()):
         if other != work:  # labels of a run with an earlier recipe: keep the finished ones
             with DatasetStore(other, "a") as store:
                 shard = export_shard(folder, store, {"host": socket.gethostname()})
