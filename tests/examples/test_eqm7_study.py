@@ -9,69 +9,22 @@ write its outputs, the numbers must be finite and consistent, and re-running mus
 
 from __future__ import annotations
 
-import csv
-import importlib.util
 import json
 import math
-import sys
 
 import numpy as np
 import pytest
 
-from emlpack.data.references import load_hydrides
-from emlpack.data.store import DatasetStore
-from emlpack.io import read_structures
-from tests.conftest import ROOT, require, shared_path
-
-#: the six molecules of eqm7_pbe0_subset.xyz, 100 frames each in this order
-MOLECULES = [("methane", "C", 1, "test"), ("ethane", "CC", 2, "train"),
-             ("ethene", "C=C", 2, "val"), ("ethyne", "C#C", 2, "train"),
-             ("ethanol", "CCO", 3, "train"), ("cyclopropane", "C1CC1", 3, "train")]
-PER_MOLECULE = 8
-
-
-def _study_module():
-    spec = importlib.util.spec_from_file_location(
-        "eqm7_run_study", ROOT / "examples" / "eqm7" / "run_study.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-def _tiny_dataset(folder):
-    """A data-set folder in the campaign's layout, from the shared PBE0 subset."""
-    frames = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"))
-    folder.mkdir()
-    (folder / "shards").mkdir()
-    with (folder / "molecules.csv").open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["name", "source", "smiles", "n_heavy", "split"])
-        for name, smiles, n_heavy, split in MOLECULES:
-            w.writerow([name, "eqm7_pbe0_subset", smiles, n_heavy, split])
-    records = []
-    for m, (name, *_rest) in enumerate(MOLECULES):
-        for k in range(PER_MOLECULE):
-            s = frames[100 * m + 7 * k]
-            records.append(s.copy(info={"key": f"{name}/nms/{k:04d}", "molecule_id": name,
-                                         "kind": "nms", "level": "pbe0/aug-cc-pvtz"}))
-    hydrides, energies = load_hydrides(shared_path("data/hydrides"))
-    for h, e in zip(hydrides, energies, strict=True):
-        name = h.info["molecule_id"]
-        records.append(h.copy(energy=float(e), info={
-            "key": f"hydride/{name}", "molecule_id": name, "kind": "hydride",
-            "level": "pbe0/aug-cc-pvtz"}))
-    with DatasetStore(folder / "shards" / "0000.h5", "a") as store:
-        store.append(records)
-    return folder
+from tests.conftest import ROOT, require
+from tests.examples.eqm7_data import PER_MOLECULE, study_module, tiny_dataset
 
 
 @pytest.fixture(scope="module")
 def study_run(tmp_path_factory):
     require("pyscf")
-    mod = _study_module()
+    mod = study_module()
     root = tmp_path_factory.mktemp("eqm7")
-    data = _tiny_dataset(root / "data")
+    data = tiny_dataset(root / "data")
     overrides = [
         f"data={data}", f"workdir={root / 'work'}", f"results_dir={root / 'results'}",
         "seeds=[0, 1]",
@@ -202,7 +155,7 @@ def test_export_ships_the_augmented_ensemble_with_its_card(study_run):
 
 
 def test_dft_plan_finishes_the_figure_molecules_then_polarizabilities_then_hessians():
-    mod = _study_module()
+    mod = study_module()
     rows = [{"name": n} for n in ("a", "fig2", "b", "fig1")]
     plan = [(r["name"], part) for r, part in mod.dft_plan(rows, ["fig1", "fig2"])]
     assert plan == [("fig2", "static"), ("fig2", "ir"), ("fig1", "static"), ("fig1", "ir"),
@@ -253,7 +206,7 @@ def test_dft_route_matches_finite_differences():
     from emlpack.qm.pyscf_labeler import PySCFLabeler
     from emlpack.units import FIELD_AU_IN_V_PER_A
 
-    mod = _study_module()
+    mod = study_module()
     lab = PySCFLabeler("tiny", boys_starts=1)
     z = np.array([8, 1, 1])
     r = np.array([[0.0, 0.0, 0.12], [0.0, 0.76, -0.47], [0.0, -0.76, -0.47]])
@@ -300,7 +253,7 @@ def test_cheap_level_hessian_starts_bfgs_in_fewer_steps(tmp_path):
 
     from emlpack.qm.sampling import molecule_from_smiles
 
-    mod = _study_module()
+    mod = study_module()
     m = molecule_from_smiles("C1CN1", "aziridine")
     atoms = Atoms(numbers=m.numbers, positions=m.positions)
     atoms.calc = TBLite(method="GFN1-xTB", verbosity=0)
