@@ -45,6 +45,19 @@ def test_thresholds_per_caller():
                                                                 fmax=1e-5)
 
 
+def test_a_flat_valley_is_not_a_saddle():
+    """The relaxation's check takes smallest curvatures above -flat_curvature (1e-3 eV/Å^2:
+    the azimuth of a triple bond's pairs is flat) as a flat valley; a curvature at or below it
+    is a saddle. MD's watchdog keeps the strict threshold (any curvature <= 0)."""
+    cores = np.zeros((1, 3))
+    pairs = np.array([[0.5, 0.0, 0.0], [-0.5, 0.0, 0.0]])
+    flat = RelaxOptions().flat_curvature
+    assert flat == 1e-3
+    assert check_pairs(pairs, cores, min_curvature=-3e-4, flat_curvature=flat) == ""
+    assert "saddle" in check_pairs(pairs, cores, min_curvature=-1e-3, flat_curvature=flat)
+    assert "saddle" in check_pairs(pairs, cores, min_curvature=-3e-4)
+
+
 @pytest.fixture(scope="module")
 def water():
     torch.set_num_threads(1)

@@ -12,7 +12,14 @@ import torch
 from emlpack.io import read_structures
 from emlpack.nn.checkpoint import load_model as load_checkpoint
 from emlpack.nn.electrostatics import coulomb_molecular, ewald_reciprocal
-from emlpack.pairs.relax import _BondRotations, _CoulombPairs, _PairProblem, relax_pairs
+from emlpack.pairs.relax import (
+    _BondRotations,
+    _CoulombPairs,
+    _PairProblem,
+    pair_hessian,
+    relax_pairs,
+)
+from emlpack.structure import Structure
 from tests.conftest import shared_path
 from tests.legacy.test_reference_fixtures import load_model
 
@@ -242,3 +249,47 @@ def test_held_core_core_filters_equal_plain_evaluation(which, small, trained):
     finally:
         for p, f in zip(model.parameters(), flags, strict=True):
             p.requires_grad_(f)
+
+
+def test_collapsed_pairs_stop_early(small):
+    """With the random fixture weights two pairs of these starts fall onto one point (closer
+    than 1e-3 Å, where their distance has no direction): the relaxation stops there instead of
+    spending its iteration budget (and the exact-Hessian retry's) on them, with the same
+    merged-pair failure."""
+    starts = _starts("::75")[2:5:2]
+    stopped = relax_pairs(small, starts, check_curvature=False)
+    ran_on = relax_pairs(small, starts, check_curvature=False, collapse_distance=0.0)
+    for a, b in zip(stopped, ran_on, strict=True):
+        assert a.failed and b.failed
+        assert "(merged;" in a.reason and "(merged;" in b.reason, (a.reason, b.reason)
+        assert a.iterations < 0.5 * b.iterations, (a.iterations, b.iterations)
+
+
+def test_closest_pair_distance_uses_the_minimum_image():
+    """Two pairs 0.2 Å apart across the face of a cubic 5 Å cell (4.8 Å within it), and a
+    molecule's two pairs 0.3 Å apart; a structure with one pair has no pair distance (inf)."""
+    four_h = np.array([[1.0, 1.0, 1.0], [2.0, 1.0, 1.0], [1.0, 3.0, 1.0], [2.0, 3.0, 1.0]])
+    crystal = Structure(np.ones(4), four_h, np.array([[0.1, 2.0, 2.0], [4.9, 2.0, 2.0]]),
+                        cell=5.0 * np.eye(3), pbc=True)
+    molecule = Structure(np.ones(4), four_h, np.array([[1.2, 2.0, 1.0], [1.5, 2.0, 1.0]]))
+    single = Structure(np.array([1, 1]), np.array([[0.0, 0.0, 0.0], [0.74, 0.0, 0.0]]),
+                       np.array([[0.37, 0.0, 0.0]]))
+    model = load_model("small")
+    g = model.graph([crystal, molecule, single], dtype=torch.float64)
+    prob = _PairProblem(model, g, hold_filters=False)
+    d = prob.closest_pair_distance(g.positions[prob.pair_idx])
+    np.testing.assert_allclose(d[:2].numpy(), [0.2, 0.3], atol=1e-12)
+    assert torch.isinf(d[2])
+
+
+def test_curvature_check_equals_the_exact_pair_hessian(trained):
+    """The smallest pair-Hessian eigenvalue at the result (Davidson on Hessian-vector products
+    of the structures not yet converged, float32 products after the float32 phase of a batch
+    of more than 128 pairs) equals the exact pair Hessian's, per structure."""
+    starts = _starts("::25")  # 24 configurations, ~190 pairs: a float32 phase
+    assert sum(s.n_pairs for s in starts) >= 128
+    results = relax_pairs(trained, starts)
+    for s, r in zip(starts, results, strict=True):
+        assert not r.failed, r.reason
+        exact = np.linalg.eigvalsh(pair_hessian(trained, s.copy(pairs=r.pairs)))[0]
+        assert r.min_curvature == pytest.approx(exact, abs=1e-4, rel=1e-3)

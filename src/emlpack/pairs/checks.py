@@ -42,6 +42,7 @@ def check_pairs(
     fmax: float | None = None,
     max_force: float | None = None,
     min_curvature: float = float("nan"),
+    flat_curvature: float = 0.0,
 ) -> str:
     """Reasons (``"; "``-joined, empty when fine) why relaxed ``pairs`` (Å) at ``cores`` (Å)
     cannot be trusted: two pairs closer than ``min_pair_distance`` (merged), a pair farther
@@ -70,7 +71,7 @@ def check_pairs(
     if not converged:
         reasons.append("no convergence" + ("" if fmax is None else f" to fmax={fmax:g} eV/Å")
                        + ("" if max_force is None else f" (max force {max_force:.3g} eV/Å)"))
-    if np.isfinite(min_curvature) and min_curvature <= 0:
+    if np.isfinite(min_curvature) and min_curvature <= -flat_curvature:
         reasons.append(f"negative pair curvature {min_curvature:.3g} eV/Å^2 at the result"
                        " (saddle, not a minimum)")
     return "; ".join(reasons)
