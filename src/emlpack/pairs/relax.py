@@ -21,163 +21,39 @@ Default method (``initial_hessian="coulomb"``): a quasi-Newton on the per-struct
    the exact-Hessian Newton method below;
 5. (``bond_rotations``, molecules) the step is taken in cylindrical coordinates about the axis
    through each pair's two nearest cores (:class:`_BondRotations`): its tangential part turns
-   the pair about that bond instead of moving it along the tangent. Acetylene's triple-bond
-   pairs have a soft rotation about the C-C axis (curvature 4e-3 eV/Å^2 at the minimum,
-   anharmonic; the benchmark's random start turns them by up to ~20 degrees); straight steps
-   along it stretch the pairs off the axis and zig-zag. Measured on the 64-structure benchmark
-   (trained model, fmax 1e-4): evaluations sum 1076 -> 1020, max 56 -> 39, the seven
-   acetylene structures 306 -> 223 evaluations; same minima (energies within 4e-7 eV at fmax
-   1e-4, 1e-8 eV at fmax 1e-6);
+   the pair about that bond instead of moving it along the tangent (acetylene's triple-bond
+   pairs have a soft rotation about the C-C axis that straight steps zig-zag along);
 6. (with 5) the model lives in those coordinates: per turned pair radial, arc length and axial
    (``M`` is Cartesian; the step model adds the connection term of the gradient, ``-g_r/rho``
    tangential and ``g_t/rho`` radial-tangential, :meth:`_BondRotations.connection`); the SR1
    secant is the turned step with the new gradient turned back less that term of the
    short-range gradient, and ``M`` turns with the accepted pairs.
 
-Measured (issue 14, the slow tail; trained model, 64-structure benchmark, fmax 1e-4, 1 thread,
-CPU of the batch in one process, /work/notes-style sweep): the acetylene structures took 25-46
-evaluations. Cause: SR1 from the Cartesian chord of a turned step. A turn by theta has a chord
-with a radial part -rho theta^2/2 that the gradient does not see (the energy is nearly
-symmetric about the axis), so ``r = y - M s`` is radial with ``r.s ~ -k_r rho^2 theta^4/4`` and
-the update takes the whole stiff radial curvature k_r (~70-85 eV/Å^2) off the model: model
-eigenvalues of -50 to -4e5 eV/Å^2 after accepted steps along the soft rotation, the next step
-ran along them to the trust radius and was rejected (every 2nd-3rd tail step; the model's
-Rayleigh quotient along the rejected step -50..-4000 against +30..+90 exact). With 6:
-evaluations sum 1002 -> 922, max 40 -> 26, acetylene 306 -> 226, CPU 0.91 -> 0.80 s (3
-alternated runs). A secant in the turned frame without the connection term learnt a
-rotational curvature of 0.015 instead of 0.05 eV/Å^2 (the short-range gradient alone is not
-small at the minimum) and helped only half the structures. Also fixed: a zero step (the
-float32 -> float64 re-evaluation in place) was turned and moved the pairs by ~1e-17 Å, and
-SR1 read the float32/float64 gradient difference over it as a 1e12 eV/Å^2 curvature (max 46 ->
-40 before 6). Mirroring model curvatures below -1 eV/Å^2 (spurious SR1 curvature that the
-shift sent the step along): sum 922 -> 884, max 26 -> 23. Tried and dropped: SR1 skip threshold
-``|r.s| > c |r||s|`` with c = 1e-4..3e-2 (max 26-31; with the chord secant 1e-3..1e-1 made it
-max 58-91); mirroring every negative curvature (max 58); no shift for models with every
-curvature above 1e-4 or 1e-3 (max 28); skipping SR1 updates that leave a curvature below -1
-along r (max 25, sum 888: as good as the mirror, not both); float32_above 1e-2 / 3e-3 (max 25,
-sum 886-894). Minima: at fmax 1e-6 energies within 3e-11 eV of the previous code's (float64,
-fmax 1e-6) except one acetylene that neither converges below 7.3e-6 eV/Å (flat mode 4.8e-4
-eV/Å^2; same energy; SciPy-style BFGS reaches 1e-7 within 9e-9 eV of it); at fmax 1e-4 within
-6e-8 eV except that structure (1.27e-5 eV, previous code 1.26e-5: what fmax 1e-4 allows along
-a 4.8e-4 eV/Å^2 mode). ``benchmarks/relax.py --model trained --threads 1``, 2 runs alternated
-with the previous code at load ~9 on 2 cores: emlpack batch CPU 0.71 / 0.74 s (previous 0.91 /
-0.90), CPU speedup vs SciPy 14.6 / 13.5 (previous 12.3 / 13.0); the wall-time
-``speedup_vs_scipy`` 12.1 / 11.6 (previous 12.4 / 9.0) is dominated by the load (wall 2-3x
-CPU). The tail is now ~0.1 s of the ~0.8 s batch; most of the rest are the float64 iterations
-of the ~40 structures just below ``float32_above`` (then 3e-2 eV/Å; see below).
-
 Every evaluation holds the SchNet filters of the core-core edges fixed (their lengths do not
-change at fixed cores and cell): computed once per batch (:meth:`emlpack.nn.potential.EMLP.
-hold_filters`), only edges involving a pair are re-evaluated; equal to the plain evaluation to
-rounding (measured 2e-15 relative), 29 % less CPU per energy+gradient on the trained benchmark
-model's 64 eqm7 structures (23 % with the fixture weights).
+change at fixed cores and cell; :meth:`emlpack.nn.potential.EMLP.hold_filters`). A plain
+:class:`EMLP` is evaluated without its electrostatics, whose energy and gradient come from the
+analytic pair terms computed for ``H_el`` anyway. Float32 phase (``float32_above``, batches of
+at least ``float32_min_pairs`` pairs): while a structure's largest pair force is above it, its
+evaluations are float32 (Armijo test with a 1e-6 |E| allowance, steps below that resolution
+accepted on a lower pair-gradient norm), then float64, so the minima are float64 minima.
 
-Measured (issue 14; one process, 1 thread): on the small trained benchmark model the short range
-is ~93 % of the pair Hessian's norm (with the random paper-size fixture weights 0.2-0.9 %), so
-the lumped start matters: 12.5 instead of 27-30 median evaluations; median 10-13 evaluations
-(3 of them the lumped start) vs SciPy BFGS's 46.5 on the 64-structure relaxation benchmark.
-Float32 phase (``float32_above``, default 3e-4 eV/Å, or ``fmax`` when larger; batches of at
-least ``float32_min_pairs`` pairs, smaller ones are dispatch-bound and gain nothing): while a
-structure's largest pair force is above it, its evaluations (start, lumped start, iterations)
-are float32 (2.5x cheaper on the trained model; Armijo test with an allowance of 1e-6 |E| for
-the float32 energy, and a step whose predicted decrease is below that allowance is accepted when
-it lowers the pair-gradient norm); it then goes on in float64 as before (its first float64 step
-is accepted when it lowers the pair-gradient norm, else it is re-evaluated in float64 where it
-is), so the minima are float64 minima. When the structures still in float32 hold fewer than
-``float32_min_pairs`` pairs they all go on in float64 (one model call per iteration instead of
-two; those still above ``float32_above`` take the Armijo test of their first float64 step
-against the float32 energy, with the float32 allowance). Measured on the 64-structure benchmark
-(fmax 1e-4, 1 thread, float32_above 3e-2): energies within 1e-7 eV of float64 throughout, median
-13 evaluations as before, CPU ~1.2 s -> ~0.95 s at load ~9 (noisy); an earlier float32 phase
-with the plain float64 Armijo test rejected good steps near the minimum and cost more than it
-saved.
+``initial_hessian="exact"``: Newton with exact vectorised pair Hessians (forward over reverse),
+refreshed when the line search backtracks or every ``hessian_every`` steps, damped BFGS updates
+in between. ``"bfgs"``: damped BFGS from a scaled identity.
 
-Measured (issue 14, float32 down to 3e-4 eV/Å; same benchmark, CPU of the batch in one process,
-medians of 6-8 alternated runs at load 5-9): with ``float32_above`` 3e-2 the ~40 structures just
-below it took 4-6 float64 iterations each (0.03-0.06 s per batched float64 call, ~0.39 of the
-0.84 s batch). The float32 gradient is within 1.3e-5 eV/Å (pair norm; median 2.9e-6) of float64
-at the minima and its differences within 2e-5 eV/Å, so float32 steps stay good to ~3e-4 eV/Å;
-but its energy (error ~7e-6 eV) no longer resolves the decrease there (a Newton step's ~g^2/k is
-1e-6-1e-8 eV), so steps were rejected on noise: the gradient-norm test for those. Then nearly
-every structure needs a single float64 evaluation (its first float64 step from below 3e-4
-converges): ``float32_above`` 3e-2 / 1e-3 / 3e-4 CPU 0.75 / 0.65 / 0.59 s (medians of 3
-alternated runs, before the gradient-norm test; evaluations 883 / 899 / 906, with the test 896 /
-899 for 1e-3 / 3e-4, CPU 0.79 / 0.79 vs 0.94 s for 3e-2 in 6 runs at a higher load; 3e-2 -> 3e-4
-0.69 -> 0.61 s in 8 runs at load ~5); 2e-4 919 evaluations, no faster; 1e-4 / 7e-5 / 4e-5 949 /
-968 / 1008 (float32 steps below its noise). The float32 tail leaving together: 33 -> 25 model
-calls, evaluations 894, max 22. Turning the short-range model only for the accepted structures
-with a turned pair, no box projection without bounds, the bond-rotation frame once per iterate:
-per-iteration overhead outside the model ~6 ms (coulomb derivatives 1.5, Newton solve 1.3, model
-assembly and connection 0.7, SR1 secant 0.7 ms), within the noise. ``benchmarks/relax.py --model
-trained --threads 1``, 2 runs alternated with the previous code (load ~5): emlpack batch CPU
-0.65 / 0.62 s (previous 0.74 / 0.84), CPU speedup vs SciPy 17.2 / 18.1 (previous 13.6 / 13.9),
-wall ``speedup_vs_scipy`` 15.5 / 16.8 (previous 13.3 / 14.8); a third pair with the final code
-(float32 tail's Armijo test): CPU 0.58 s (previous 0.86), CPU speedup 19.3 (13.4), wall 19.1
-(10.8). Minima: at fmax 1e-6 within 9e-11 eV of the float64 reference except the flat acetylene
-(as before), at fmax 1e-4 within 6.1e-8 eV except it (1.27e-5 eV, as before). Tried and dropped:
-deferring the float64 steps until the float32 phase is over (one batched float64 call: 8 instead
-of 15 float64 calls, more loop iterations; CPU alike); compacting the evaluated batch at 90 % /
-100 % of the members instead of 75 % (alike); a larger lumped-start difference step 3e-3 / 1e-2
-/ 3e-2 Å (evaluations 903 / 922 / 915); float32 edge lengths from float64 positions with float64
-radial basis (gradient error 1.3e-5 -> 6.4e-6 eV/Å, energy error unchanged: the network's
-rounding dominates); flushing denormals (no change); the float32 tail leaving below 64 / 32 / 1
-pairs instead of 128 (alike); the Coulomb pair derivatives scattered from index lists built once
-(1.8 -> 1.4 ms per call for the whole batch, 0.6 -> 0.7 ms for 3 structures: no net gain). Where
-the batch goes now (~0.62 s): ~0.09 s the start and lumped start (4 float32 calls of the whole
-batch), ~0.38 s the model in the iterations (float32 ~0.23, float64 ~0.11-0.15 of it; calls of
-1-3 structures cost 3-4 ms each, dispatch-bound), ~0.12 s the loop outside the model, ~0.03 s
-setup. A float32 evaluation is ~20 ms for the 64 structures, mostly elementwise passes over the
-4544 free edges x 64 filters (softplus ~1 ms per call) and their backward.
-
-Measured (issue 14, electrostatics out of the model calls): with a plain :class:`EMLP` the
-evaluations are short range (+ field) only (``EMLP.energy_parts(long_range=False)``); the
-electrostatic energy and gradient (float64, also in the float32 phase) come from the pair terms
-that :class:`_CoulombPairs` evaluates at every iterate for ``H_el`` anyway
-(:func:`emlpack.nn.electrostatics.coulomb_pair_terms`; core-core pairs and self energies once),
-and the lumped start differences no longer subtract Coulomb gradients (the autograd
-electrostatics cost 0.5-1.5 ms of every model call); the float32 held core-core filters are
-rounded from the float64 ones. Same benchmark, fmax 1e-4: evaluations 892 -> 893, max 22 -> 23;
-energies within 3.7e-8 eV of the previous code's, within 2.5e-8 eV of the fmax 1e-6 minima
-except the flat acetylene (1.27e-5 eV, as before); reported energies within 2e-12 eV of a
-plain evaluation at the result. Batch CPU: in one process against the old evaluations
-(toggle) ratio 0.954 (median of 50 paired runs); main vs this code in alternated processes (5
-relaxations each, 10 pairs, load ~5): median 0.72 -> 0.64 s (ratio of pairs 0.89);
-``benchmarks/relax.py --model trained --threads 1 --repeats 3``, 2 runs alternated at load ~6:
-emlpack CPU 1.60 / 1.71 -> 1.48 / 1.68 s (3 batches), ``speedup_vs_scipy`` 13.7 / 13.1 ->
-14.5 / 14.8, CPU speedup 14.5 / 13.4 -> 15.3 / 15.5 (single runs at this load: 11-18 either way).
-Tried and dropped: the start and lumped start from quadratic filters about the start (the
-free edges' filters as ``W0 + W1 d + W2 d^2 / 2``; energy exact at the start): exact
-forward-mode coefficients (:meth:`~emlpack.nn.schnet.SchNet.filter_taylor`) cost 34 ms in
-float32 (1.6 evaluations), central differences at +-0.01 Å from one batched filter evaluation
-~38 ms in the relaxation, the four calls only 20-30 % cheaper there (10 vs 21 ms alone),
-evaluations 898 -> 908: CPU ratio 1.02 (30 paired runs); a hand-written SchNet backward
-(equal time: the calls are bound by ~60 elementwise passes over the (E, K) edge arrays, 0.1-0.4
-ms each, not by autograd; and a faster model would speed up the SciPy baseline alike); the
-Coulomb pair terms scattered from index lists built once (again: 1.5 -> ~1.3 ms for the whole
-batch, 0.46 -> 0.75 ms for 3 structures).
-
-Tried and dropped (issue 14): SchNet filters of the free edges by cubic Hermite interpolation
-from a table of exact values and slopes (spacing 0.002 Å: 2e-11 / 4.5e-10 of max|W| on the
-trained / paper-size fixture weights, dW/dr 1.4e-8 / 1.7e-7), in the iterations, with exact
-evaluations below 10 fmax and a certifying exact evaluation (branch wip-tabfilter, commit
-f44e654). The gathered table rows (4 per edge and filter) are memory-bound: filters forward +
-backward 1.6x cheaper on the trained model, an energy+gradient ~10-20 %, the paper-size forward
-no cheaper; the relaxation no faster (CPU exact/tabulated 1.00, median of 6 alternated runs;
-benchmark CPU speedup vs SciPy 11.8-12.9 before, 11.3-15.2 after, noisy at load ~8).
-
-``initial_hessian="exact"``: the previous default, Newton with exact vectorised pair Hessians
-(forward over reverse), refreshed when the line search backtracks or every ``hessian_every``
-steps, damped BFGS updates in between. ``"bfgs"``: damped BFGS from a scaled identity.
-
-Convergence: the largest pair-force norm (projected on the box) below ``fmax`` (eV/Å).
-Diagnostics per structure: converged flag, iterations, energy+gradient evaluations, Hessian
-evaluations, final max force, smallest eigenvalue of the exact pair Hessian at the result
-(default method: Davidson iterations on exact Hessian-vector products, preconditioned by the
-quasi-Newton model, instead of the full Hessian), and a failure reason from
-:func:`emlpack.pairs.checks.check_pairs` (no convergence, two pairs closer than
+Convergence: the largest pair-force norm (projected on the box) below ``fmax`` (eV/Å); a
+structure whose pairs collapse onto one point (``collapse_distance``) stops. Diagnostics per
+structure: converged flag, iterations, energy+gradient evaluations, Hessian evaluations, final
+max force, smallest eigenvalue of the exact pair Hessian at the result (default method:
+Davidson iterations on Hessian-vector products of the structures not yet converged,
+preconditioned by the quasi-Newton model, instead of the full Hessian), and a failure reason
+from :func:`emlpack.pairs.checks.check_pairs` (no convergence, two pairs closer than
 ``min_pair_distance``, a pair farther than ``max_core_distance`` from every core, minimum
-image; non-positive curvature). :mod:`emlpack.pairs.solvers` wraps this function as
-:class:`~emlpack.pairs.solvers.BatchedSolver`.
+image; a curvature at or below ``-flat_curvature``). :mod:`emlpack.pairs.solvers` wraps this
+function as :class:`~emlpack.pairs.solvers.BatchedSolver`.
+
+Why each piece is there, with the measurements and what was tried and dropped:
+``docs/relaxation.md``.
 """
 
 from __future__ import annotations
