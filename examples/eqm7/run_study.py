@@ -774,6 +774,8 @@ def stage_ir(study: Study) -> None:
                        intensities=spec.intensities.tolist())
             if changes:
                 row["failure"] = "bonding changed: " + "; ".join(changes)
+            elif o.pair_check:
+                row["failure"] = f"broken electron pairs: {o.pair_check}"
             rows[mol] = row
         _write_json(target, {"group": group, "name": name, "model": str(path),
                              "molecules": rows})

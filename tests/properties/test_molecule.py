@@ -159,3 +159,25 @@ def test_lorentzian_integrates_to_intensity():
     assert abs(np.trapezoid(curve, grid) - 5.0) < 0.01
     peak = lorentzian(np.array([1000.0]), np.array([1000.0]), np.array([1.0]), 10.0)
     np.testing.assert_allclose(peak, 1.0 / (np.pi * 5.0))
+
+
+def test_an_optimum_with_merged_pairs_is_a_failure():
+    """A stiff spring of rest length 0 between two of water's pairs (beside the toy springs
+    that hold the molecule) makes an optimum with those pairs on one point: the optimiser
+    converges there, and the result says it is broken instead of converged."""
+    from tests.properties.toy import SpringModel
+
+    s = water_molecule()
+    model = spring_model(s)
+    nc = s.n_cores
+    springs = model.springs + [(nc, nc + 1, (0, 0, 0), 2000.0, 0.0)]
+    merged = SpringModel(model.config, springs).double()
+    merged.load_state_dict(model.state_dict())
+    res = optimize(merged, s, fmax=1e-4)
+    assert np.linalg.norm(res.structure.pairs[0] - res.structure.pairs[1]) < 0.1
+    assert res.max_force < 1e-4  # converged by its forces ...
+    assert not res.converged  # ... but not an optimum of a molecule
+    assert "pairs 0 and 1 are" in res.pair_check and "(merged;" in res.pair_check
+    assert res.pair_check in res.reason
+    healthy = optimize(model, s, fmax=1e-4)
+    assert healthy.converged and healthy.pair_check == "" and healthy.reason == ""

@@ -186,7 +186,9 @@ def relax(model, s, level: str, args, log: Log, warnings: list[str]):
                  f" ({args.method}) ...")
     res = optimize(model, s, cell=level == "cell", fmax=args.fmax, method=args.method,
                    max_iterations=args.max_iterations)
-    if not res.converged:
+    if res.pair_check:
+        warnings.append(f"optimisation failed, broken electron pairs: {res.reason}")
+    elif not res.converged:
         warnings.append(f"optimisation not converged: {res.reason or 'iteration limit'}")
     if np.isfinite(res.min_curvature) and res.min_curvature < 0:
         warnings.append(f"saddle point: lowest internal Hessian eigenvalue"
@@ -201,7 +203,7 @@ def relax(model, s, level: str, args, log: Log, warnings: list[str]):
                             "model_energy_eV": float(res.energy),
                             "max_force_eV_per_A": float(res.max_force),
                             "lowest_internal_hessian_eigenvalue": float(res.min_curvature),
-                            "reason": res.reason}
+                            "reason": res.reason, "pair_check": res.pair_check}
     if out.pbc:  # stress as computed, whether or not the cell was relaxed
         stress = np.asarray(model.evaluate(out, stress=True)["stress"]).reshape(3, 3)
         gpa = stress * EV_PER_A3_IN_GPA

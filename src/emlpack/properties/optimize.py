@@ -16,7 +16,11 @@ tolerances (response properties need ~1e-6 eV/Å). ``method="lbfgs"`` uses scipy
 with gradients only (large models, where one Hessian costs hundreds of gradients).
 Converged when every particle force (rigid-body components removed: a molecule in a field
 feels a torque, which the optimiser does not follow) is below ``fmax`` (eV/Å) and, with
-``cell``, every stress component below ``smax`` (eV/Å³).
+``cell``, every stress component below ``smax`` (eV/Å³), and the electron pairs at the result
+pass :func:`emlpack.pairs.checks.check_pairs` (no two merged, none away from every core): a
+poorly trained model can have a deep spurious minimum with two pairs on one point (measured:
+a member of the preliminary ``mini-eqm7`` on 3-(methylamino)but-2-enal, 19 eV below the
+start), which is a broken result, not an optimum.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from ase.geometry import cell_to_cellpar
 
 from emlpack.geometry import STRAIN_BASIS, internal_basis, rigid_body_modes, voigt_strain
 from emlpack.nn.potential import EMLP
+from emlpack.pairs.checks import check_pairs
 from emlpack.properties.hessian import extended_gradient, extended_hessian
 from emlpack.structure import Structure
 from emlpack.units import EV_PER_A3_IN_GPA
@@ -48,6 +53,9 @@ class OptimizeResult:
     reason: str = ""
     #: the last Hessian used, in the variables (du, S) of the final structure's neighbourhood
     hessian: np.ndarray | None = None
+    #: what :func:`~emlpack.pairs.checks.check_pairs` found wrong with the pairs at the result
+    #: (merged or stray pairs; empty when none); also in ``reason``, and ``converged`` is False
+    pair_check: str = ""
 
     def lattice(self) -> dict:
         """Lattice lengths a, b, c (Å), angles alpha, beta, gamma (degrees), volume (Å³)."""
@@ -221,7 +229,17 @@ def optimize(
         s, energy = trial, e_trial
     g = prob.gradient(s)
     f_end, s_end = prob.measures(s, g)
-    return OptimizeResult(s, energy, converged, it, f_end, s_end, min_curv, reason, h)
+    return _checked(OptimizeResult(s, energy, converged, it, f_end, s_end, min_curv, reason, h))
+
+
+def _checked(res: OptimizeResult) -> OptimizeResult:
+    """``res`` with the pair check at its structure: broken pairs fail the optimisation."""
+    s = res.structure
+    res.pair_check = check_pairs(s.pairs, s.positions, s.cell, s.pbc)
+    if res.pair_check:
+        res.converged = False
+        res.reason = "; ".join(r for r in (res.pair_check, res.reason) if r)
+    return res
 
 
 def _longest(s: Structure, step: np.ndarray, cell: bool) -> float:
@@ -256,6 +274,6 @@ def _lbfgs(prob: _Problem, s0: Structure, fmax: float, smax: float, max_iteratio
     reason = "" if converged else f"L-BFGS-B stopped: {res.message}"
     if log:
         log(f"L-BFGS-B: {res.nit} iterations, {calls['n']} evaluations, fmax {f_end:.2e}")
-    return OptimizeResult(s, float(res.fun), converged, int(res.nit), f_end, s_end,
-                          float("nan"), reason)
+    return _checked(OptimizeResult(s, float(res.fun), converged, int(res.nit), f_end, s_end,
+                                   float("nan"), reason))
 
