@@ -179,5 +179,6 @@ def test_an_optimum_with_merged_pairs_is_a_failure():
     assert not res.converged  # ... but not an optimum of a molecule
     assert "pairs 0 and 1 are" in res.pair_check and "(merged;" in res.pair_check
     assert res.pair_check in res.reason
+    assert res.iterations < 100
     healthy = optimize(model, s, fmax=1e-4)
     assert healthy.converged and healthy.pair_check == "" and healthy.reason == ""

@@ -28,6 +28,25 @@ MIN_PAIR_DISTANCE = 0.1
 MD_MIN_PAIR_DISTANCE = 0.2
 #: a pair farther than this (Å) from every core has left its molecule
 MAX_CORE_DISTANCE = 2.0
+#: two pairs closer than this (Å) have collapsed onto one point: relaxations and optimisations
+#: stop there (the direction of their distance is undefined; docs/relaxation.md)
+COLLAPSE_DISTANCE = 1e-3
+
+
+def _pair_distances(pairs: np.ndarray, cell: np.ndarray | None, pbc: bool) -> np.ndarray:
+    """Distances [n, n] (Å) between ``pairs`` [n, 3], minimum image, inf on the diagonal."""
+    pbc3 = [bool(np.all(pbc))] * 3
+    d = np.linalg.norm(minimum_image(pairs[:, None] - pairs[None], cell, pbc3), axis=-1)
+    d[np.diag_indices(len(pairs))] = np.inf
+    return d
+
+
+def closest_pair_distance(pairs: np.ndarray, cell: np.ndarray | None = None,
+                          pbc: bool = False) -> float:
+    """Smallest distance (Å) between two of ``pairs`` [n, 3] (Å), minimum image for a
+    crystal (``cell`` rows, Å); inf with fewer than two pairs."""
+    pairs = np.asarray(pairs, float).reshape(-1, 3)
+    return float(_pair_distances(pairs, cell, pbc).min()) if len(pairs) > 1 else float("inf")
 
 
 def check_pairs(
@@ -47,16 +66,15 @@ def check_pairs(
     """Reasons (``"; "``-joined, empty when fine) why relaxed ``pairs`` (Å) at ``cores`` (Å)
     cannot be trusted: two pairs closer than ``min_pair_distance`` (merged), a pair farther
     than ``max_core_distance`` from every core, no convergence to ``fmax`` (eV/Å; largest pair
-    force ``max_force`` when known), or a non-positive smallest pair-Hessian eigenvalue
-    ``min_curvature`` (eV/Å^2; NaN: not computed). ``cell`` rows (Å) and ``pbc`` give the
-    minimum image of a crystal."""
+    force ``max_force`` when known), or a smallest pair-Hessian eigenvalue ``min_curvature``
+    at or below ``-flat_curvature`` (eV/Å^2; NaN: not computed; ``flat_curvature`` 0: any
+    non-positive one). ``cell`` rows (Å) and ``pbc`` give the minimum image of a crystal."""
     pairs = np.asarray(pairs, float).reshape(-1, 3)
     cores = np.asarray(cores, float).reshape(-1, 3)
     pbc3 = [bool(np.all(pbc))] * 3
     reasons = []
     if len(pairs) > 1:
-        d = np.linalg.norm(minimum_image(pairs[:, None] - pairs[None], cell, pbc3), axis=-1)
-        d[np.diag_indices(len(pairs))] = np.inf
+        d = _pair_distances(pairs, cell, pbc)
         if d.min() < min_pair_distance:
             i, j = np.unravel_index(np.argmin(d), d.shape)
             reasons.append(f"pairs {i} and {j} are {d.min():.3g} Å apart (merged;"

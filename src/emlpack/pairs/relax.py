@@ -74,7 +74,12 @@ from emlpack.nn.graph import Graph
 from emlpack.nn.potential import EMLP
 from emlpack.nn.scatter import segment_sum
 from emlpack.nn.schnet import HeldFilters
-from emlpack.pairs.checks import MAX_CORE_DISTANCE, MIN_PAIR_DISTANCE, check_pairs
+from emlpack.pairs.checks import (
+    COLLAPSE_DISTANCE,
+    MAX_CORE_DISTANCE,
+    MIN_PAIR_DISTANCE,
+    check_pairs,
+)
 from emlpack.structure import Structure
 
 
@@ -172,7 +177,7 @@ class RelaxOptions:
     #: again in the exact-Hessian retry (6.6 s of their batch's 7.7 s); the closest accepted
     #: iterate of a structure that ended unfailed was 0.49 Å apart with that model and 0.035
     #: Å with the random paper-size fixture weights (64 frames)
-    collapse_distance: float = 1e-3
+    collapse_distance: float = COLLAPSE_DISTANCE
     #: smallest pair curvatures above minus this (eV/Å^2) are a flat valley, not a saddle
     #: (:func:`~emlpack.pairs.checks.check_pairs`): the azimuth of a triple bond's pairs is
     #: flat (cylindrical symmetry), and a relaxation stopped at ``fmax`` = 1e-4 eV/Å sits

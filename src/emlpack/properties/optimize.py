@@ -20,7 +20,9 @@ feels a torque, which the optimiser does not follow) is below ``fmax`` (eV/Å) a
 pass :func:`emlpack.pairs.checks.check_pairs` (no two merged, none away from every core): a
 poorly trained model can have a deep spurious minimum with two pairs on one point (measured:
 a member of the preliminary ``mini-eqm7`` on 3-(methylamino)but-2-enal, 19 eV below the
-start), which is a broken result, not an optimum.
+start), which is a broken result, not an optimum. The Newton iterations stop when two pairs
+come closer than :data:`~emlpack.pairs.checks.COLLAPSE_DISTANCE` (that member went on for its
+100 iterations, 8 s, before).
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from ase.geometry import cell_to_cellpar
 
 from emlpack.geometry import STRAIN_BASIS, internal_basis, rigid_body_modes, voigt_strain
 from emlpack.nn.potential import EMLP
-from emlpack.pairs.checks import check_pairs
+from emlpack.pairs.checks import COLLAPSE_DISTANCE, check_pairs, closest_pair_distance
 from emlpack.properties.hessian import extended_gradient, extended_hessian
 from emlpack.structure import Structure
 from emlpack.units import EV_PER_A3_IN_GPA
@@ -227,6 +229,9 @@ def optimize(
             reason = "line search failed (energy does not decrease)"
             break
         s, energy = trial, e_trial
+        if closest_pair_distance(s.pairs, s.cell, s.pbc) < COLLAPSE_DISTANCE:
+            reason = f"two electron pairs collapsed onto one point after {it} iterations"
+            break
     g = prob.gradient(s)
     f_end, s_end = prob.measures(s, g)
     return _checked(OptimizeResult(s, energy, converged, it, f_end, s_end, min_curv, reason, h))
