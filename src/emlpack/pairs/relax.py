@@ -171,20 +171,12 @@ class RelaxOptions:
     mirror_curvature: float = 1.0
     #: a structure whose accepted pairs include two closer than this (Å) has collapsed (two
     #: pairs on one point, where the direction of their distance is undefined) and stops; its
-    #: result fails as merged (0: never stop). Measured (relaxation benchmark starts, fmax
-    #: 1e-4): on 256 eqm7 frames with the small trained benchmark model the two structures
-    #: that collapse (to 1.6e-5 and 5.8e-5 Å) went on for the whole iteration budget, then
-    #: again in the exact-Hessian retry (6.6 s of their batch's 7.7 s); the closest accepted
-    #: iterate of a structure that ended unfailed was 0.49 Å apart with that model and 0.035
-    #: Å with the random paper-size fixture weights (64 frames)
+    #: result fails as merged (0: never stop; measurements: docs/relaxation.md)
     collapse_distance: float = COLLAPSE_DISTANCE
     #: smallest pair curvatures above minus this (eV/Å^2) are a flat valley, not a saddle
     #: (:func:`~emlpack.pairs.checks.check_pairs`): the azimuth of a triple bond's pairs is
     #: flat (cylindrical symmetry), and a relaxation stopped at ``fmax`` = 1e-4 eV/Å sits
-    #: anywhere along it. Measured on 256 eqm7 frames (trained benchmark model): two acetylene
-    #: structures converged with -2.9e-4 and -3.5e-4 eV/Å^2 (an energy change of ~2e-6 eV over
-    #: 0.1 Å) and were failed as saddles, and retried with exact Hessians, with the old
-    #: threshold 0; the smallest curvatures of the others were 1e-4 to 0.01 and up
+    #: anywhere along it (measured: docs/relaxation.md)
     flat_curvature: float = 1e-3
 
 
@@ -1059,15 +1051,8 @@ def _min_curvature(prob, x, grad, lower, upper, projected, opts, n_hess,
     preconditioned by the model (counted as one Hessian in ``n_hess``; at most
     ``curvature_steps`` Hessian-vector products, each only for the structures not converged
     yet, in ``product_prob``'s dtype: the float32 problem of a relaxation that had a float32
-    phase); else the exact pair Hessian.
-
-    Measured (64-structure benchmark, trained model, load ~4): the check cost 0.9-1.7 s
-    against ~0.2-0.4 s for the relaxation (17 Davidson iterations, every one a float64
-    product of the whole batch; the structures still unconverged after each: 63, 61, 40, 29,
-    26, 26, 17, 9, 6, 4, 2, 1, 1, 0). Products of the unconverged ones only: the same
-    eigenvalues, product CPU 1.73 -> 0.89 s. Float32 products on top: on 128 structures
-    eigenvalues within 2.2e-5 eV/Å^2 of float64 (largest relative change 1.3 % on 2e-4
-    eV/Å^2), no sign changed."""
+    phase: eigenvalues within 2.2e-5 eV/Å^2 of float64 products, measured in
+    docs/relaxation.md); else the exact pair Hessian."""
     g = prob.g
     min_curv = torch.full((g.n_structures,), float("nan"), dtype=torch.float64)
     if opts.check_curvature and prob.n_max and model_hessian is not None and (
