@@ -79,3 +79,65 @@ def test_escaped_pair_is_reported(model, methanes):
     pairs[0] += 6.0
     r = relax_pairs(model, s.copy(pairs=pairs), max_iterations=1)[0]
     assert "from the nearest core" in r.reason and r.failed
+
+
+def test_relaxed_pairs_are_stationary_with_a_graph_built_at_the_result(monkeypatch):
+    """The relaxation builds its SchNet neighbour list at the start pairs. Two methanes 4 Å
+    apart, with one pair pushed just beyond the 4 Å cutoff of a particle of the other
+    molecule: relaxed back inside, that edge was missing, and on the model evaluated afresh
+    the 'converged' pairs felt 0.2 eV/Å. A result whose neighbour list changed is relaxed
+    again from there: stationary (< fmax) on a fresh evaluation, with its energy."""
+    import emlpack.pairs.relax as relax_module
+    from emlpack.nn.checkpoint import load_model as load_checkpoint
+    from emlpack.structure import Structure
+    from tests.pairs.test_relax_quasi_newton import TRAINED
+
+    model = load_checkpoint(TRAINED)
+    model.eval()
+    m = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), index=0)[0]
+    m = m.copy(pairs=relax_pairs(model, m, fmax=1e-6)[0].pairs)
+    shift = np.array([4.0, 0.0, 0.0])
+    dimer = Structure(np.r_[m.numbers, m.numbers], np.r_[m.positions, m.positions + shift],
+                      np.r_[m.pairs, m.pairs + shift])
+    dimer = dimer.copy(pairs=relax_pairs(model, dimer, fmax=1e-6)[0].pairs)
+    pos, nc = dimer.all_positions, dimer.n_cores
+    others = list(range(m.n_cores, nc)) + list(range(nc + m.n_pairs, len(pos)))
+    d = np.linalg.norm(pos[nc:nc + m.n_pairs, None] - pos[None, others], axis=-1)
+    p, o = np.argwhere((d > 3.7) & (d < 3.95))[0]  # a pair of A inside the cutoff of B
+    u = (pos[nc + p] - pos[others[o]]) / d[p, o]
+    start = dimer.copy(pairs=dimer.pairs + np.eye(dimer.n_pairs)[p][:, None]
+                       * (4.07 - d[p, o]) * u)
+
+    def fresh_max_force(r):
+        out = model.evaluate(start.copy(pairs=r.pairs))
+        return np.linalg.norm(out["pair_forces"], axis=1).max(), out["energy"]
+
+    monkeypatch.setattr(relax_module, "_MAX_GRAPH_REBUILDS", 0)
+    stale = relax_pairs(model, start, fmax=1e-6)[0]
+    assert stale.max_force < 1e-6 and fresh_max_force(stale)[0] > 1e-2  # the old behaviour
+    monkeypatch.undo()
+    r = relax_pairs(model, start, fmax=1e-6)[0]
+    force, energy = fresh_max_force(r)
+    assert not r.failed and force < 1e-6
+    assert r.energy == pytest.approx(energy, abs=1e-9)
+
+
+def test_missing_edges_are_found_in_molecules_and_through_the_cell_boundary(model):
+    """A pair moved from 4.05 to 3.95 Å of a core gains an edge (molecule: direct distance;
+    crystal: to the core's image across the face of a 10 Å cell); moved the other way, none
+    is missing (an edge beyond the cutoff contributes zero)."""
+    from emlpack.pairs.relax import _missing_edges
+    from emlpack.structure import Structure
+
+    assert model.config.cutoff == 4.0
+    cores = np.array([[0.5, 5.0, 5.0], [1.24, 5.0, 5.0], [9.0, 9.0, 9.0], [9.74, 9.0, 9.0]])
+    # x of the moving pair 3.95 Å / 4.05 Å from the core at x = 1.24 (molecule) or from the
+    # image of the core at x = 0.5 beyond the face x = 10 (crystal); every other distance > 4.3
+    for pbc, x_in, x_out in ((False, 5.19, 5.29), (True, 6.55, 6.45)):
+        cell = 10.0 * np.eye(3) if pbc else np.zeros((3, 3))
+        start = Structure(np.ones(4), cores, np.array([[0.87, 5.0, 5.0], [x_out, 5.0, 5.0]]),
+                          cell=cell, pbc=pbc)
+        inside = start.pairs.copy()
+        inside[1, 0] = x_in
+        assert _missing_edges(model, start, inside), pbc
+        assert not _missing_edges(model, start.copy(pairs=inside), start.pairs), pbc

@@ -42,13 +42,15 @@ refreshed when the line search backtracks or every ``hessian_every`` steps, damp
 in between. ``"bfgs"``: damped BFGS from a scaled identity.
 
 Convergence: the largest pair-force norm (projected on the box) below ``fmax`` (eV/Å); a
-structure whose pairs collapse onto one point (``collapse_distance``) stops. Diagnostics per
-structure: converged flag, iterations, energy+gradient evaluations, Hessian evaluations, final
-max force, smallest eigenvalue of the exact pair Hessian at the result (default method:
-Davidson iterations on Hessian-vector products of the structures not yet converged,
-preconditioned by the quasi-Newton model, instead of the full Hessian), and a failure reason
-from :func:`emlpack.pairs.checks.check_pairs` (no convergence, two pairs closer than
-``min_pair_distance``, a pair farther than ``max_core_distance`` from every core, minimum
+structure whose pairs collapse onto one point (``collapse_distance``) stops. The graph (the
+SchNet neighbour list) is built at the start pairs; a structure whose neighbour list at the
+result holds an edge the start lacked is relaxed again from its result on a graph built there.
+Diagnostics per structure: converged flag, iterations, energy+gradient evaluations, Hessian
+evaluations, final max force, smallest eigenvalue of the exact pair Hessian at the result
+(default method: Davidson iterations on Hessian-vector products of the structures not yet
+converged, preconditioned by the quasi-Newton model, instead of the full Hessian), and a
+failure reason from :func:`emlpack.pairs.checks.check_pairs` (no convergence, two pairs closer
+than ``min_pair_distance``, a pair farther than ``max_core_distance`` from every core, minimum
 image; a curvature at or below ``-flat_curvature``). :mod:`emlpack.pairs.solvers` wraps this
 function as :class:`~emlpack.pairs.solvers.BatchedSolver`.
 
@@ -512,29 +514,80 @@ def relax_pairs(
     for p, _ in grad_flags:
         p.requires_grad_(False)
     try:
-        if opts.initial_hessian != "coulomb":
-            return _relax(model, structures, opts, bounds)
-        results = _relax_coulomb(model, structures, opts, bounds)
-        # a failed quasi-Newton relaxation (e.g. slid into a merged pair, off to a neighbouring
-        # basin of a poorly trained model) is tried again with the exact-Hessian Newton method
-        # from the same start, so the default fails no more often than the exact method
-        retry = [k for k, r in enumerate(results) if r.failed]
-        if retry:
-            sub_bounds = None if bounds is None else [bounds[k] for k in retry]
-            again = _relax(model, [structures[k] for k in retry],
-                           replace(opts, initial_hessian="exact"), sub_bounds)
-            for k, r in zip(retry, again, strict=True):
-                first = results[k]
-                r.iterations += first.iterations
-                r.n_evaluations += first.n_evaluations
-                r.n_hessians += first.n_hessians
-                if r.failed:
-                    r.reason = f"{first.reason} (exact-Hessian retry: {r.reason})"
+        results = _relax_once(model, structures, opts, bounds)
+        # the graph (SchNet neighbour list) is built at the start pairs and kept: a structure
+        # whose result has an edge within the cutoff that the start lacked is relaxed again
+        # from its result with a graph built there (until the neighbour list holds)
+        starts = list(structures)
+        for _ in range(_MAX_GRAPH_REBUILDS):
+            stale = [k for k, r in enumerate(results)
+                     if not r.failed and _missing_edges(model, starts[k], r.pairs)]
+            if not stale:
+                break
+            for k in stale:
+                starts[k] = starts[k].copy(pairs=results[k].pairs)
+            sub_bounds = None if bounds is None else [bounds[k] for k in stale]
+            again = _relax_once(model, [starts[k] for k in stale], opts, sub_bounds)
+            for k, r in zip(stale, again, strict=True):
+                r.iterations += results[k].iterations
+                r.n_evaluations += results[k].n_evaluations
+                r.n_hessians += results[k].n_hessians
                 results[k] = r
         return results
     finally:
         for p, flag in grad_flags:
             p.requires_grad_(flag)
+
+
+#: relaxations again from the result with a graph built there, at most (each one usually
+#: takes one to three iterations; docs/relaxation.md)
+_MAX_GRAPH_REBUILDS = 3
+
+
+def _missing_edges(model: EMLP, start: Structure, pairs: np.ndarray) -> bool:
+    """Whether particles within the SchNet cutoff with the pairs at ``pairs`` [P, 3] (Å) were
+    farther apart in ``start``, whose neighbour list the relaxation used (only edges of a pair
+    can change at fixed cores; edges that left the cutoff contribute exactly zero)."""
+    if start.n_pairs == 0 or np.array_equal(pairs, start.pairs):
+        return False
+    cutoff = model.config.cutoff
+    end = start.copy(pairs=pairs)
+    if start.pbc:
+        from emlpack.nn.neighbors import half_neighbor_list
+
+        before = half_neighbor_list(start.all_positions, start.cell, True, cutoff)
+        after = half_neighbor_list(end.all_positions, end.cell, True, cutoff)
+        had = {(int(i), int(j), *map(int, s)) for i, j, s in zip(*before, strict=True)}
+        return any((int(i), int(j), *map(int, s)) not in had
+                   for i, j, s in zip(*after, strict=True))
+    nc = start.n_cores
+    p0, p1 = start.all_positions, end.all_positions
+    d0 = np.linalg.norm(p0[nc:, None] - p0[None], axis=-1)  # [P, n_particles]
+    d1 = np.linalg.norm(p1[nc:, None] - p1[None], axis=-1)
+    return bool(np.any((d1 < cutoff) & (d0 >= cutoff)))
+
+def _relax_once(model, structures, opts, bounds) -> list[RelaxResult]:
+    """One relaxation of ``structures`` on graphs built at their start pairs."""
+    if opts.initial_hessian != "coulomb":
+        return _relax(model, structures, opts, bounds)
+    results = _relax_coulomb(model, structures, opts, bounds)
+    # a failed quasi-Newton relaxation (e.g. slid into a merged pair, off to a neighbouring
+    # basin of a poorly trained model) is tried again with the exact-Hessian Newton method
+    # from the same start, so the default fails no more often than the exact method
+    retry = [k for k, r in enumerate(results) if r.failed]
+    if retry:
+        sub_bounds = None if bounds is None else [bounds[k] for k in retry]
+        again = _relax(model, [structures[k] for k in retry],
+                       replace(opts, initial_hessian="exact"), sub_bounds)
+        for k, r in zip(retry, again, strict=True):
+            first = results[k]
+            r.iterations += first.iterations
+            r.n_evaluations += first.n_evaluations
+            r.n_hessians += first.n_hessians
+            if r.failed:
+                r.reason = f"{first.reason} (exact-Hessian retry: {r.reason})"
+            results[k] = r
+    return results
 
 
 def _setup(model, structures, bounds, dtype=torch.float64):
