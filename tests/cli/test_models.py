@@ -123,3 +123,37 @@ def test_property_commands_report_the_ensemble_mean_and_spread(ensemble_folder, 
                                   s["spectrum_km_per_mol_per_cm-1"]) for s in singles], axis=0)
         np.testing.assert_allclose(data["spectrum_km_per_mol_per_cm-1"], mean, rtol=1e-8,
                                    atol=1e-10)
+
+
+def test_a_member_with_a_broken_structure_is_left_out_of_the_results(ensemble_folder, tmp_path,
+                                                                     monkeypatch):
+    """A member whose relaxation leaves a broken structure (here its pair relaxation is made
+    to report a failure) is left out of the mean and spread, named in a warning and in
+    ``ensemble.left_out``: the values are the sound member's own."""
+    from emlpack.cli import main, properties
+
+    water = write_xyz(tmp_path / "w.xyz", water_rows(4))
+    members = sorted(ensemble_folder.glob("*.pt"))
+    alone = tmp_path / "alone.json"
+    assert main(["polarizability", str(members[0]), str(water), "-o", str(alone),
+                 "--quiet"]) == 0
+    real, calls = properties.relax, []
+
+    def relax(model, s, level, args, log, warnings):
+        out, info = real(model, s, level, args, log, warnings)
+        calls.append(level)
+        if len(calls) == 2:  # the second member
+            info["pairs"]["failed"] = True
+            warnings.append("pair relaxation failed: made to fail by the test")
+        return out, info
+
+    monkeypatch.setattr(properties, "relax", relax)
+    out = tmp_path / "ensemble.json"
+    assert main(["polarizability", str(ensemble_folder), str(water), "-o", str(out),
+                 "--quiet"]) == 0
+    data, single = json.loads(out.read_text()), json.loads(alone.read_text())
+    assert [p.rsplit("/", 1)[-1] for p in data["ensemble"]["left_out"]] == [members[1].name]
+    assert data["ensemble"]["size"] == 1
+    assert any(w.startswith("model 2 left out of the results") for w in data["warnings"])
+    assert data["polarizability_isotropic_bohr3"] == pytest.approx(
+        single["polarizability_isotropic_bohr3"], rel=1e-10)

@@ -55,13 +55,20 @@ class Prepared:
 
     With an ensemble (a folder of checkpoints or a pretrained name) every member relaxes its
     own pairs (and positions, cell) from the same input: ``structures[k]`` belongs to
-    ``members[k]``; the commands report the members' mean and their spread (``*_std``).
+    ``members[k]``; the commands report the members' mean and their spread (``*_std``). A
+    member whose relaxation left a broken structure (failed pair relaxation, merged or stray
+    pairs after the optimisation, changed bonding) is left out of them when another member's
+    is sound (``left_out``: their sources; a warning says so).
     """
 
-    def __init__(self, members, structures, where, field_info, warnings, relax_infos, log):
+    def __init__(self, members, structures, where, field_info, warnings, relax_infos, log,
+                 left_out=(), labels=None):
         self.members, self.structures = list(members), list(structures)
         self.where, self.field_info, self.warnings = where, field_info, warnings
         self.relax_infos, self.log = relax_infos, log
+        self.left_out = list(left_out)
+        #: how the messages name each member ("model K", K counted over all members)
+        self.labels = labels or [f"model {k + 1}" for k in range(len(self.members))]
 
     @property
     def ensemble(self) -> bool:
@@ -89,9 +96,10 @@ class Prepared:
         out["structure"] = self.where
         out.update(self.field_info)
         out["relaxation"] = self.relax_infos[0] if not self.ensemble else self.relax_infos
-        if self.ensemble:
+        if self.ensemble or self.left_out:
             out["ensemble"] = {"size": len(self.members),
-                               "members": [m.source for m in self.members]}
+                               "members": [m.source for m in self.members],
+                               "left_out": self.left_out}
         out["warnings"] = list(self.warnings)
         out["settings"] = settings(args)
         return out
@@ -156,7 +164,26 @@ def prepare(args, periodic: bool | None, command: str) -> Prepared:
         structures.append(relaxed)
         infos.append(info)
         warnings += [f"model {k + 1}: {w}" if len(members) > 1 else w for w in notes]
-    return Prepared(members, structures, where, field_info, warnings, infos, log)
+    broken = [k for k, info in enumerate(infos) if _broken(info)]
+    labels = [f"model {k + 1}" for k in range(len(members))]
+    left_out = []
+    if broken and len(broken) < len(members):
+        keep = [k for k in range(len(members)) if k not in broken]
+        names = ", ".join(labels[k] for k in broken)
+        warnings.append(f"{names} left out of the results (broken structure, see above):"
+                        f" {'the mean and spread of' if len(keep) > 1 else 'the values of'}"
+                        f" {len(keep)} of {len(members)} models")
+        left_out = [members[k].source for k in broken]
+        members, structures, infos, labels = ([seq[k] for k in keep]
+                                              for seq in (members, structures, infos, labels))
+    return Prepared(members, structures, where, field_info, warnings, infos, log, left_out,
+                    labels)
+
+def _broken(info: dict) -> bool:
+    """Whether a member's relaxation record (``relax``) says its structure is broken."""
+    opt = info.get("optimisation", {})
+    return bool(info.get("pairs", {}).get("failed") or opt.get("pair_check")
+                or opt.get("bonding_changes"))
 
 
 def relax(model, s, level: str, args, log: Log, warnings: list[str]):
@@ -193,9 +220,8 @@ def relax(model, s, level: str, args, log: Log, warnings: list[str]):
     if np.isfinite(res.min_curvature) and res.min_curvature < 0:
         warnings.append(f"saddle point: lowest internal Hessian eigenvalue"
                         f" {res.min_curvature:.3g} eV/Å² is negative")
-    if not s.pbc:
-        warnings += [f"bonding changed: {c}" for c in
-                     bonding_changes(s.numbers, s.positions, res.structure.positions)]
+    changes = [] if s.pbc else bonding_changes(s.numbers, s.positions, res.structure.positions)
+    warnings += [f"bonding changed: {c}" for c in changes]
     out = res.structure
     log(f"optimised in {res.iterations} iterations ({time.perf_counter() - t0:.1f} s):"
         f" energy {res.energy:.6f} eV, max force {res.max_force:.2e} eV/Å")
@@ -203,7 +229,8 @@ def relax(model, s, level: str, args, log: Log, warnings: list[str]):
                             "model_energy_eV": float(res.energy),
                             "max_force_eV_per_A": float(res.max_force),
                             "lowest_internal_hessian_eigenvalue": float(res.min_curvature),
-                            "reason": res.reason, "pair_check": res.pair_check}
+                            "reason": res.reason, "pair_check": res.pair_check,
+                            "bonding_changes": changes}
     if out.pbc:  # stress as computed, whether or not the cell was relaxed
         stress = np.asarray(model.evaluate(out, stress=True)["stress"]).reshape(3, 3)
         gpa = stress * EV_PER_A3_IN_GPA
@@ -302,7 +329,7 @@ def add_ir(sub) -> None:
                 spec, frequencies=np.concatenate([x.frequencies for x in spectra]),
                 intensities=np.concatenate([x.intensities for x in spectra]) / n)
             for k, x in enumerate(spectra):
-                prep.log(f"model {k + 1} ({prep.members[k].source}):")
+                prep.log(f"{prep.labels[k]} ({prep.members[k].source}):")
                 prep.log(x.text())
         else:
             prep.log(spec.text())
@@ -310,7 +337,7 @@ def add_ir(sub) -> None:
         for k, x in enumerate(spectra):
             n_imag = int(np.sum(x.frequencies < 0))
             if n_imag:
-                who = f"model {k + 1}: " if prep.ensemble else ""
+                who = f"{prep.labels[k]}: " if prep.ensemble else ""
                 prep.warnings.append(f"{who}{n_imag} imaginary mode(s) (lowest"
                                      f" {x.frequencies.min():.1f} cm^-1): not a minimum")
         write_ir(spec, args.output, args.plot, fwhm=args.fwhm, reference=ref,
@@ -387,7 +414,7 @@ def add_polarizability(sub) -> None:
         for k, r in enumerate(members):
             low = float(np.linalg.eigvalsh(0.5 * (r.polarizability + r.polarizability.T))[0])
             if low < 0:
-                who = f"model {k + 1}: " if prep.ensemble else ""
+                who = f"{prep.labels[k]}: " if prep.ensemble else ""
                 prep.warnings.append(
                     f"{who}negative polarizability eigenvalue"
                     f" {low * COULOMB_EV_A * POLARIZABILITY_A3_IN_BOHR3:.3g} bohr^3 (pairs not"
@@ -426,7 +453,7 @@ def add_response(sub) -> None:
             if low < 0:
                 from emlpack.units import EV_PER_A3_IN_GPA
 
-                who = f"model {k + 1}: " if prep.ensemble else ""
+                who = f"{prep.labels[k]}: " if prep.ensemble else ""
                 prep.warnings.append(f"{who}negative stiffness eigenvalue"
                                      f" {low * EV_PER_A3_IN_GPA:.3g} GPa: the crystal is not"
                                      " mechanically stable")
