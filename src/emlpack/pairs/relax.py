@@ -519,10 +519,16 @@ def relax_pairs(
         # whose result has an edge within the cutoff that the start lacked is relaxed again
         # from its result with a graph built there (until the neighbour list holds)
         starts = list(structures)
-        for _ in range(_MAX_GRAPH_REBUILDS):
+        for rebuild in range(_MAX_GRAPH_REBUILDS + 1):
             stale = [k for k, r in enumerate(results)
                      if not r.failed and _missing_edges(model, starts[k], r.pairs)]
             if not stale:
+                break
+            if rebuild == _MAX_GRAPH_REBUILDS:  # still moving into the cutoff: not trusted
+                for k in stale:
+                    results[k].converged = False
+                    results[k].reason = (f"the pairs still moved into the SchNet cutoff after"
+                                         f" {rebuild} rebuilds of the neighbour list")
                 break
             for k in stale:
                 starts[k] = starts[k].copy(pairs=results[k].pairs)
