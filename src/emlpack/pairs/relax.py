@@ -535,10 +535,7 @@ def relax_pairs(
             sub_bounds = None if bounds is None else [bounds[k] for k in stale]
             again = _relax_once(model, [starts[k] for k in stale], opts, sub_bounds)
             for k, r in zip(stale, again, strict=True):
-                r.iterations += results[k].iterations
-                r.n_evaluations += results[k].n_evaluations
-                r.n_hessians += results[k].n_hessians
-                results[k] = r
+                results[k] = _after(results[k], r)
         return results
     finally:
         for p, flag in grad_flags:
@@ -561,11 +558,13 @@ def _missing_edges(model: EMLP, start: Structure, pairs: np.ndarray) -> bool:
     if start.pbc:
         from emlpack.nn.neighbors import half_neighbor_list
 
-        before = half_neighbor_list(start.all_positions, start.cell, True, cutoff)
-        after = half_neighbor_list(end.all_positions, end.cell, True, cutoff)
-        had = {(int(i), int(j), *map(int, s)) for i, j, s in zip(*before, strict=True)}
-        return any((int(i), int(j), *map(int, s)) not in had
-                   for i, j, s in zip(*after, strict=True))
+        def edges(s: Structure) -> set:
+            # each unordered edge once, whichever way round the half list gives it
+            i, j, shifts = half_neighbor_list(s.all_positions, s.cell, True, cutoff)
+            return {min((int(a), int(b), *map(int, c)), (int(b), int(a), *map(int, -c)))
+                    for a, b, c in zip(i, j, shifts, strict=True)}
+
+        return not edges(end) <= edges(start)
     nc = start.n_cores
     p0, p1 = start.all_positions, end.all_positions
     d0 = np.linalg.norm(p0[nc:, None] - p0[None], axis=-1)  # [P, n_particles]
@@ -586,14 +585,18 @@ def _relax_once(model, structures, opts, bounds) -> list[RelaxResult]:
         again = _relax(model, [structures[k] for k in retry],
                        replace(opts, initial_hessian="exact"), sub_bounds)
         for k, r in zip(retry, again, strict=True):
-            first = results[k]
-            r.iterations += first.iterations
-            r.n_evaluations += first.n_evaluations
-            r.n_hessians += first.n_hessians
             if r.failed:
-                r.reason = f"{first.reason} (exact-Hessian retry: {r.reason})"
-            results[k] = r
+                r.reason = f"{results[k].reason} (exact-Hessian retry: {r.reason})"
+            results[k] = _after(results[k], r)
     return results
+
+
+def _after(first: RelaxResult, then: RelaxResult) -> RelaxResult:
+    """``then``, a relaxation that went on from ``first``, with both one's counts."""
+    then.iterations += first.iterations
+    then.n_evaluations += first.n_evaluations
+    then.n_hessians += first.n_hessians
+    return then
 
 
 def _setup(model, structures, bounds, dtype=torch.float64):
