@@ -158,3 +158,44 @@ def test_ensemble_of_seeds_and_evaluation_table(tmp_path, small_data):
     assert (tmp_path / "eval" / "parity.png").stat().st_size > 1000
     assert len(results["models"]) == 2
     assert np.isfinite(results["models"][0]["static"]["forces"]["mae"])
+
+
+def test_snapshots_outlive_the_run_folder_and_resume_exactly(tmp_path, small_data):
+    """A run on a "fresh machine" (its run folder gone) goes on from the newest snapshot and
+    ends as an uninterrupted run does; older snapshots are removed; a grown data set is
+    refused on resume."""
+    ref = load_config(_config(tmp_path, small_data, "ref"), ["training.max_epochs=4"])
+    train(ref)
+    snaps = tmp_path / "snapshots"
+    data = tmp_path / "data.xyz"  # a copy: grown at the end
+    data.write_bytes(small_data.read_bytes())
+    first = load_config(_config(tmp_path, data, "run"), [
+        "training.max_epochs=2", f"output.snapshot_dir={snaps}", "output.snapshot_minutes=0"])
+    train(first)
+    kept = sorted(p.name for p in snaps.iterdir())
+    assert len(kept) == 1 and kept[0].startswith("step-")  # the epoch-1 snapshot was removed
+    assert sorted(p.name for p in (snaps / kept[0]).iterdir()) == ["best.pt", "last.pt",
+                                                                    "log.csv"]
+    before = _log(snaps / kept[0])
+    import shutil
+
+    shutil.rmtree(tmp_path / "run")  # the machine is gone; the snapshot folder stays
+    again = load_config(_config(tmp_path, data, "run"), [
+        "training.max_epochs=4", f"output.snapshot_dir={snaps}", "output.snapshot_minutes=0"])
+    train(again)
+    a, b = _log(tmp_path / "ref"), _log(tmp_path / "run")
+    assert [r["epoch"] for r in b] == ["1", "2", "3", "4"]
+    # epochs 1-2 were not trained again: their rows (timings included) come from the snapshot
+    assert [r["epoch_time"] for r in b[:2]] == [r["epoch_time"] for r in before]
+    for ra, rb in zip(a, b, strict=True):
+        for key in ("train_loss", "val_loss", "lr", "step"):
+            assert float(ra[key]) == pytest.approx(float(rb[key]), rel=1e-6), key
+    w_ref = read_checkpoint(tmp_path / "ref" / "last.pt")["state_dict"]
+    w_run = read_checkpoint(snaps / sorted(p.name for p in snaps.iterdir())[-1] / "last.pt")[
+        "state_dict"]
+    for key in w_ref:
+        torch.testing.assert_close(w_ref[key], w_run[key], rtol=1e-5, atol=1e-7)
+
+    write_structures(data, read_structures(small_data, index=":") * 2)
+    with pytest.raises(ValueError, match="now holds 48"):
+        train(load_config(tmp_path / "run.yaml", ["training.max_epochs=5"]))

@@ -25,7 +25,6 @@ import logging
 import os
 import signal
 import socket
-import subprocess
 import threading
 import time
 from collections import Counter
@@ -35,6 +34,7 @@ import numpy as np
 import yaml
 
 from emlpack._files import atomic_path, write_text_atomic
+from emlpack.commits import git_commit
 from emlpack.data.shards import (
     MOLECULES_FILE,
     SHARD_DIR,
@@ -253,24 +253,6 @@ def export_shard(folder: str | Path, store: DatasetStore, run_info: dict) -> Pat
     return final
 
 
-def git_commit(folder: Path, paths: list[Path], message: str, tries: int = 5) -> bool:
-    """Commit ``paths`` (and nothing else) to the git repository holding ``folder``."""
-    rel = [str(p.resolve().relative_to(folder.resolve().parent)) for p in paths if p.exists()]
-    cwd = folder.resolve().parent
-    for attempt in range(tries):
-        add = subprocess.run(["git", "add", "--", *rel], cwd=cwd, capture_output=True, text=True)
-        if add.returncode == 0:
-            com = subprocess.run(["git", "commit", "-q", "-m", message, "--", *rel], cwd=cwd,
-                                 capture_output=True, text=True)
-            if com.returncode == 0:
-                return True
-            if "nothing" in com.stdout + com.stderr:
-                return True
-        time.sleep(2.0 * (attempt + 1))  # e.g. another git command holds index.lock
-    log.warning("could not commit %s: %s", rel, (add.stderr or "").strip())
-    return False
-
-
 def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = None,
                  hours: float | None = None, shard_minutes: float = 20.0,
                  commit: bool = False, progress: bool = True,
@@ -308,7 +290,7 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
             if shard is not None:
                 log.info("campaign %s: %s (earlier recipe) -> %s", folder, other, shard)
                 if commit:
-                    git_commit(folder, [folder / SHARD_DIR],
+                    git_commit([folder / SHARD_DIR],
                                f"{settings.get('name', folder.name)}: shard {shard.stem}")
     done = finished_keys(folder, failures=not retry_failed)
     t0 = time.time()
@@ -330,7 +312,7 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
         write_card(folder)
         log.info("campaign %s: wrote %s", folder, shard)
         if commit:  # the folders: a shard renamed but not committed by a killed run, too
-            git_commit(folder, [folder / SHARD_DIR, folder / "prepared", folder / "README.md"],
+            git_commit([folder / SHARD_DIR, folder / "prepared", folder / "README.md"],
                        f"{settings.get('name', folder.name)}: shard {shard.stem}")
 
     def on_stored(store: DatasetStore) -> bool:

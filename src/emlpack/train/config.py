@@ -47,7 +47,15 @@ DEFAULTS: dict = {
         "threads": None,
         "eval_batch_size": 64,
     },
-    "output": {"dir": "runs/emlp", "progress": True, "tensorboard": False},
+    "output": {
+        "dir": "runs/emlp",
+        "progress": True,
+        "tensorboard": False,
+        # snapshots: copies of the run's state that outlive the machine (trainer.py)
+        "snapshot_dir": None,  # folder for step-NNNNNNNN/ snapshots (None: none)
+        "snapshot_minutes": 30.0,  # a snapshot after the first epoch that ends this much later
+        "snapshot_commit": False,  # git-commit every snapshot (the folder must be in a repo)
+    },
 }
 
 

@@ -15,6 +15,14 @@ with ``(seed, e)``, and augmentation of configuration ``i`` uses ``(seed, e, i)`
 at any point restarts from the end of the last finished epoch (``last.pt`` is written
 atomically) and continues exactly as an uninterrupted run would.
 
+Snapshots (``output.snapshot_dir``): a run that outlives its machine (a training longer than a
+session) copies ``last.pt``, ``best.pt`` and ``log.csv`` every ``output.snapshot_minutes`` and
+when it stops into a new folder ``snapshot_dir/step-NNNNNNNNN/`` (written under a temporary name,
+then renamed; the older snapshot folders are removed), committed to git with
+``output.snapshot_commit``. A run whose ``last.pt`` is missing or older than the newest snapshot
+starts from that snapshot, so the same command on a fresh clone goes on exactly where the last
+snapshot stopped.
+
 Learning rate: ``lr0 * decay_factor ** (step / (steps_per_epoch * decay_epochs))``, i.e.
 halved every ``decay_epochs`` epochs with the paper's defaults, decayed smoothly per step.
 
@@ -30,6 +38,7 @@ import json
 import logging
 import math
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -38,7 +47,8 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from emlpack._files import atomic_write, write_text_atomic
+from emlpack._files import atomic_path, atomic_write, write_text_atomic
+from emlpack.commits import git_commit
 from emlpack.data.augment import AugmentationConfig
 from emlpack.data.dataset import Collater, load_data, make_batch, molecule_id, split_indices
 from emlpack.data.references import (
@@ -177,6 +187,7 @@ class Trainer:
     def metadata(self, **extra) -> dict:
         return {"reference": self.reference.to_metadata(), "config": self.cfg,
                 "data_path": str(self.cfg["data"]["path"]),
+                "n_structures": len(self.structures),
                 "split": {k: v.tolist() for k, v in self.split.items()},
                 "elements": sorted({int(z) for i in self.split["train"]
                                     for z in self.structures[i].numbers}),
@@ -199,6 +210,12 @@ class Trainer:
                 raise ValueError(
                     f"{path}: the run was started with a different '{section}' config; resume"
                     " with the same config, or start afresh (--restart / another output.dir)")
+        saved_n = payload["metadata"].get("n_structures")
+        if saved_n is not None and int(saved_n) != len(self.structures):
+            raise ValueError(
+                f"{path}: the run was started on {saved_n} structures, {self.cfg['data']['path']}"
+                f" now holds {len(self.structures)}; resume on the same data (e.g. a fixed set of"
+                " shards), or start afresh (--restart / another output.dir)")
         state = payload["metadata"]["training"]
         self.model.load_state_dict(payload["state_dict"])
         self.optimizer.load_state_dict(state["optimizer"])
@@ -214,6 +231,10 @@ class Trainer:
         t = self.cfg["training"]
         out = self.run_dir
         last = out / "last.pt"
+        if self.rank == 0:
+            self._restore_snapshot(resume)
+        if self.dist:
+            dist.barrier()
         if resume and last.exists():
             self.resume(last)
             self._print(f"resumed from {last} at epoch {self.epoch}")
@@ -231,7 +252,8 @@ class Trainer:
             f" {self.cfg['data']['split']}); reference {self.reference.kind};"
             f" {self.model.n_parameters()} parameters; {self.world} process(es)")
         writer = self._tensorboard()
-        t_start = time.monotonic()
+        t_start = self._snapshot_time = time.monotonic()
+        snapshot_step = self.step
         limit = t["max_time_minutes"]
         stop_reason = "max_epochs"
         while self.epoch < t["max_epochs"]:
@@ -253,6 +275,9 @@ class Trainer:
                     save_model(self.model, out / "best.pt", self.metadata(val=val))
                 save_model(self.model, last, self.metadata(training=self.training_state()))
                 self._log(out / "log.csv", row)
+                if self._snapshot_due():
+                    self._snapshot()
+                    snapshot_step = self.step
                 if writer is not None:
                     for k, v in row.items():
                         writer.add_scalar(k, v, self.epoch)
@@ -271,6 +296,8 @@ class Trainer:
                 break
         self._print(f"stopped: {stop_reason}; best epoch {self.best_epoch}"
                     f" (val loss {self.best:.4g})")
+        if self.rank == 0 and self.cfg["output"]["snapshot_dir"] and self.step != snapshot_step:
+            self._snapshot()
         if writer is not None:
             writer.close()
         return out / "best.pt"
@@ -326,6 +353,69 @@ class Trainer:
         out = metrics.result()
         out["loss"] = metrics.loss(self.weights) if out else math.inf
         return out
+
+    # ------------------------------------------------------------------ snapshots
+    SNAPSHOT_FILES = ("last.pt", "best.pt", "log.csv")
+
+    def _snapshots(self) -> list[Path]:
+        """The snapshot folders of ``output.snapshot_dir``, oldest first."""
+        folder = self.cfg["output"]["snapshot_dir"]
+        if not folder or not Path(folder).is_dir():
+            return []
+        return sorted(p for p in Path(folder).glob("step-*") if p.is_dir())
+
+    def _snapshot_due(self) -> bool:
+        o = self.cfg["output"]
+        return bool(o["snapshot_dir"]) and (
+            time.monotonic() - self._snapshot_time >= 60.0 * float(o["snapshot_minutes"]))
+
+    def _snapshot(self) -> Path:
+        """Copy the run's state into a new ``step-NNNNNNNNN`` folder; remove the older ones;
+        commit with ``output.snapshot_commit``."""
+        o = self.cfg["output"]
+        root = Path(o["snapshot_dir"])
+        final = root / f"step-{self.step:09d}"
+        older = [p for p in self._snapshots() if p != final]
+        tmp = root / f".{final.name}.tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        for name in self.SNAPSHOT_FILES:
+            if (self.run_dir / name).exists():
+                shutil.copyfile(self.run_dir / name, tmp / name)
+        shutil.rmtree(final, ignore_errors=True)
+        os.replace(tmp, final)
+        for p in older:
+            shutil.rmtree(p)
+        self._snapshot_time = time.monotonic()
+        self._print(f"snapshot {final} (epoch {self.epoch})")
+        if o["snapshot_commit"]:
+            git_commit([root], f"training snapshot {root.name}: epoch {self.epoch}, step"
+                                 f" {self.step}")
+        return final
+
+    def _restore_snapshot(self, resume: bool) -> None:
+        """Copy the newest snapshot into the run folder when the run's ``last.pt`` is missing
+        or older; with ``resume=False`` (start afresh) the old snapshots are removed."""
+        snaps = self._snapshots()
+        if not snaps:
+            return
+        if not resume:
+            log.warning("starting afresh: removing the old snapshots %s", snaps)
+            for p in snaps:
+                shutil.rmtree(p)
+            return
+        newest = snaps[-1]
+        last = self.run_dir / "last.pt"
+        run_step = (int(read_checkpoint(last)["metadata"]["training"]["step"])
+                    if last.exists() else -1)
+        if int(newest.name.split("-")[1]) <= run_step:
+            return
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        for name in self.SNAPSHOT_FILES:
+            if (newest / name).exists():
+                with atomic_path(self.run_dir / name) as tmp:
+                    shutil.copyfile(newest / name, tmp)
+        self._print(f"restored {self.run_dir} from the snapshot {newest}")
 
     # ------------------------------------------------------------------ output
     def _print(self, text: str) -> None:
