@@ -25,7 +25,9 @@ The printed table gives static and dynamic errors, the pair-field slope and the 
 taken (from ``log.csv``).
 
 **Resuming.** Every step resumes: the prefixes are folders of symbolic links under
-``WORKDIR/data``, and the study's stages skip finished models and evaluations.
+``WORKDIR/data``, and the study's stages skip finished models and evaluations. With
+``--snapshots DIR`` (a folder in the repository) the trainings commit their state there every
+30 minutes, and the same command on a fresh clone goes on from it.
 """
 
 from __future__ import annotations
@@ -84,6 +86,8 @@ def point(args, data: Path, n_shards: int, steps: int, test_data: Path) -> dict:
     train_molecules = {shards.structures[i].info["molecule_id"] for i in split["train"]}
     workdir = args.workdir / f"shards-{n_shards:02d}-steps-{steps}"
     common = [f"workdir={workdir}", "groups=[aug]", "seeds=[0]", *args.set]
+    if args.snapshots is not None:
+        common.append(f"training.snapshots={args.snapshots / workdir.name}")
     base = run_study.load_config(args.config, common)
     t = base.get("training", {})
     train_yaml = Path(t.get("config", "train.yaml"))
@@ -149,6 +153,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--decay-steps", type=float, default=2800.0,
                    help="optimizer steps per halving of the learning rate")
     p.add_argument("--workdir", type=Path, default=Path("runs/eqm7-lc"))
+    p.add_argument("--snapshots", type=Path, default=None,
+                   help="commit every model's training state to SNAPSHOTS/shards-NN-steps-S"
+                        " (a folder in the repository) so that a run goes on across sessions")
     p.add_argument("--config", type=Path, default=HERE / "config.yaml", help="the study's")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                    help="more overrides of the study's config (e.g. train.model.n_features=32)")

@@ -298,6 +298,9 @@ def stage_train(study: Study) -> list[Path]:
                          f"augmentation.enabled={str(augmented).lower()}",
                          f"training.seed={seed}", "output.progress=false",
                          *t.get("overrides", [])]
+            if t.get("snapshots"):  # trainings longer than a session: committed snapshots
+                overrides += [f"output.snapshot_dir={Path(t['snapshots']) / group / f'seed{seed}'}",
+                              "output.snapshot_commit=true"]
             cfg = load_train_config(_resolve(t.get("config", "train.yaml")), overrides)
             t0 = time.perf_counter()
             best = train(cfg)  # resumes from last.pt when a previous run was cut off
