@@ -199,3 +199,26 @@ def test_snapshots_outlive_the_run_folder_and_resume_exactly(tmp_path, small_dat
     write_structures(data, read_structures(small_data, index=":") * 2)
     with pytest.raises(ValueError, match="now holds 48"):
         train(load_config(tmp_path / "run.yaml", ["training.max_epochs=5"]))
+
+
+def test_an_interrupted_run_leaves_a_snapshot_of_its_last_finished_epoch(tmp_path, small_data,
+                                                                        monkeypatch):
+    from emlpack.train.trainer import Trainer
+
+    snaps = tmp_path / "snapshots"
+    cfg = load_config(_config(tmp_path, small_data, "run"), [
+        "training.max_epochs=5", f"output.snapshot_dir={snaps}", "output.snapshot_minutes=1e6"])
+    epoch = Trainer._train_epoch
+
+    def interrupted(self):
+        if self.epoch == 2:
+            raise KeyboardInterrupt
+        return epoch(self)
+
+    monkeypatch.setattr(Trainer, "_train_epoch", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg)
+    (snap,) = snaps.iterdir()
+    state = read_checkpoint(snap / "last.pt")["metadata"]["training"]
+    assert state["epoch"] == 2 and snap.name == f"step-{state['step']:09d}"
+    assert [r["epoch"] for r in _log(snap)] == ["1", "2"]

@@ -253,51 +253,54 @@ class Trainer:
             f" {self.model.n_parameters()} parameters; {self.world} process(es)")
         writer = self._tensorboard()
         t_start = self._snapshot_time = time.monotonic()
-        snapshot_step = self.step
+        self._saved_step = self._snapshot_step = self.step
         limit = t["max_time_minutes"]
         stop_reason = "max_epochs"
-        while self.epoch < t["max_epochs"]:
-            t0 = time.monotonic()
-            train_stats = self._train_epoch()
-            val = self.validate()
-            self.epoch += 1
-            improved = val["loss"] < self.best
-            if improved:
-                self.best, self.best_epoch, self.bad_epochs = val["loss"], self.epoch, 0
-            else:
-                self.bad_epochs += 1
-            row = {"epoch": self.epoch, "step": self.step,
-                   "lr": self.optimizer.param_groups[0]["lr"], **train_stats,
-                   **{f"val_{k}": v for k, v in val.items()},
-                   "best_epoch": self.best_epoch, "epoch_time": time.monotonic() - t0}
-            if self.rank == 0:
+        try:
+            while self.epoch < t["max_epochs"]:
+                t0 = time.monotonic()
+                train_stats = self._train_epoch()
+                val = self.validate()
+                self.epoch += 1
+                improved = val["loss"] < self.best
                 if improved:
-                    save_model(self.model, out / "best.pt", self.metadata(val=val))
-                save_model(self.model, last, self.metadata(training=self.training_state()))
-                self._log(out / "log.csv", row)
-                if self._snapshot_due():
-                    self._snapshot()
-                    snapshot_step = self.step
-                if writer is not None:
-                    for k, v in row.items():
-                        writer.add_scalar(k, v, self.epoch)
-                self._print(
-                    f"epoch {self.epoch}: loss {train_stats['train_loss']:.4g}, val loss"
-                    f" {val['loss']:.4g}, val F MAE {val.get('forces_mae', float('nan')):.4f}"
-                    f" eV/Å, E MAE {1000 * val.get('energy_mae', float('nan')):.2f} meV/atom"
-                    + (" *" if improved else ""))
-            if self.dist:
-                dist.barrier()
-            if t["patience"] is not None and self.bad_epochs >= int(t["patience"]):
-                stop_reason = f"early stopping ({self.bad_epochs} epochs without improvement)"
-                break
-            if limit is not None and time.monotonic() - t_start > 60.0 * float(limit):
-                stop_reason = f"time limit ({limit} min; resume to continue)"
-                break
+                    self.best, self.best_epoch, self.bad_epochs = val["loss"], self.epoch, 0
+                else:
+                    self.bad_epochs += 1
+                row = {"epoch": self.epoch, "step": self.step,
+                       "lr": self.optimizer.param_groups[0]["lr"], **train_stats,
+                       **{f"val_{k}": v for k, v in val.items()},
+                       "best_epoch": self.best_epoch, "epoch_time": time.monotonic() - t0}
+                if self.rank == 0:
+                    if improved:
+                        save_model(self.model, out / "best.pt", self.metadata(val=val))
+                    save_model(self.model, last, self.metadata(training=self.training_state()))
+                    self._saved_step = self.step
+                    self._log(out / "log.csv", row)
+                    if self._snapshot_due():
+                        self._snapshot()
+                    if writer is not None:
+                        for k, v in row.items():
+                            writer.add_scalar(k, v, self.epoch)
+                    self._print(
+                        f"epoch {self.epoch}: loss {train_stats['train_loss']:.4g}, val loss"
+                        f" {val['loss']:.4g}, val F MAE {val.get('forces_mae', float('nan')):.4f}"
+                        f" eV/Å, E MAE {1000 * val.get('energy_mae', float('nan')):.2f} meV/atom"
+                        + (" *" if improved else ""))
+                if self.dist:
+                    dist.barrier()
+                if t["patience"] is not None and self.bad_epochs >= int(t["patience"]):
+                    stop_reason = f"early stopping ({self.bad_epochs} epochs without improvement)"
+                    break
+                if limit is not None and time.monotonic() - t_start > 60.0 * float(limit):
+                    stop_reason = f"time limit ({limit} min; resume to continue)"
+                    break
+        finally:  # also on Ctrl-C or an error: the state of the last finished epoch
+            if (self.rank == 0 and self.cfg["output"]["snapshot_dir"]
+                    and self._saved_step != self._snapshot_step):
+                self._snapshot()
         self._print(f"stopped: {stop_reason}; best epoch {self.best_epoch}"
                     f" (val loss {self.best:.4g})")
-        if self.rank == 0 and self.cfg["output"]["snapshot_dir"] and self.step != snapshot_step:
-            self._snapshot()
         if writer is not None:
             writer.close()
         return out / "best.pt"
@@ -374,7 +377,7 @@ class Trainer:
         commit with ``output.snapshot_commit``."""
         o = self.cfg["output"]
         root = Path(o["snapshot_dir"])
-        final = root / f"step-{self.step:09d}"
+        final = root / f"step-{self._saved_step:09d}"  # the step of last.pt
         older = [p for p in self._snapshots() if p != final]
         tmp = root / f".{final.name}.tmp"
         shutil.rmtree(tmp, ignore_errors=True)
@@ -387,10 +390,10 @@ class Trainer:
         for p in older:
             shutil.rmtree(p)
         self._snapshot_time = time.monotonic()
-        self._print(f"snapshot {final} (epoch {self.epoch})")
+        self._snapshot_step = self._saved_step
+        self._print(f"snapshot {final}")
         if o["snapshot_commit"]:
-            git_commit([root], f"training snapshot {root.name}: epoch {self.epoch}, step"
-                                 f" {self.step}")
+            git_commit([root], f"training snapshot {root}: step {self._saved_step}")
         return final
 
     def _restore_snapshot(self, resume: bool) -> None:
