@@ -17,11 +17,11 @@ atomically) and continues exactly as an uninterrupted run would.
 
 Snapshots (``output.snapshot_dir``): a run that outlives its machine (a training longer than a
 session) copies ``last.pt``, ``best.pt`` and ``log.csv`` every ``output.snapshot_minutes`` and
-when it stops into a new folder ``snapshot_dir/step-NNNNNNNNN/`` (written under a temporary name,
-then renamed; the older snapshot folders are removed), committed to git with
-``output.snapshot_commit``. A run whose ``last.pt`` is missing or older than the newest snapshot
-starts from that snapshot, so the same command on a fresh clone goes on exactly where the last
-snapshot stopped.
+when it stops (also on Ctrl-C or an error) into a new folder ``snapshot_dir/step-NNNNNNNNN/``
+(written under a temporary name, then renamed; the older snapshot folders are removed),
+committed to git with ``output.snapshot_commit``. A run whose ``last.pt`` is missing or older
+than the newest snapshot starts from that snapshot, so the same command on a fresh clone goes
+on exactly where the last snapshot stopped.
 
 Learning rate: ``lr0 * decay_factor ** (step / (steps_per_epoch * decay_epochs))``, i.e.
 halved every ``decay_epochs`` epochs with the paper's defaults, decayed smoothly per step.
