@@ -15,6 +15,10 @@ when present, every 5th), printed per set:
   ``|qE| / K`` the field causes for a pair stiffness K of 50 eV/Å^2. A least-squares fit whose
   input errors are as large as its signal learns a diluted slope: position errors comparable
   with the field displacements leave the pairs too soft;
+* ``augmentation fit``: on the training configurations (the DFT centres under the labels'
+  fields), one pair each displaced by d = 0.01-0.12 Å along a random direction: the model's
+  restoring force per Å (``(F(d) - F(0)) / d`` along -d, median; eV/Å^2) against the label the
+  augmentation trains on at 0.06-0.12 Å, k = 54.4 eV/Å^2;
 * at the DFT optimum of aziridine (``qm7-0011`` in DATA's references), the curvature
   ``2 dE / d^2`` of single-pair displacements of d = 0.01 and 0.1 Å (median over pairs and the
   six directions; eV/Å^2), against the augmentation's k = 2 Ha/Å^2 = 54.4 eV/Å^2.
@@ -56,6 +60,30 @@ def report(member, name: str, structures: list[Structure]) -> None:
           f" field displacement rms {np.sqrt(np.mean(qe ** 2)) / 50.0:.4f} Å (K = 50 eV/Å^2)")
 
 
+def augmentation_fit(member, structures: list[Structure], seed: int = 0) -> None:
+    """Median restoring stiffness (eV/Å^2) of single displaced pairs against the label's k."""
+    rng = np.random.default_rng(seed)
+    lengths = (0.01, 0.03, 0.06, 0.09, 0.12)
+    secants: dict[float, list[float]] = {d: [] for d in lengths}
+    for s in structures:
+        i = int(rng.integers(s.n_pairs))
+        u = rng.normal(size=3)
+        u /= np.linalg.norm(u)
+
+        def restoring(d: float, s=s, i=i, u=u) -> float:
+            p = s.pairs.copy()
+            p[i] += d * u
+            return -float(member.model.evaluate(s.copy(pairs=p))["pair_forces"][i] @ u)
+
+        f0 = restoring(0.0)
+        for d in lengths:
+            secants[d].append((restoring(d) - f0) / d)
+    print(f"augmentation fit ({len(structures)} training configurations, one pair each):"
+          f" restoring force per Å (median, eV/Å^2) "
+          + ", ".join(f"{np.median(v):.1f} at {d} Å" for d, v in secants.items())
+          + f"; the augmentation's label k = {AUGMENTATION_K_EV_A2:.1f}")
+
+
 def curvature(member, reference: Path) -> None:
     """Median single-pair curvature (eV/Å^2) at the model's pairs of a DFT optimum."""
     ref = json.loads(reference.read_text())
@@ -90,6 +118,8 @@ def main() -> None:
         idx = idx[:: args.every] if name == "train" else idx
         if len(idx):
             report(member, name, [data.structures[i] for i in idx])
+    train = data.split_indices()["train"]
+    augmentation_fit(member, [data.structures[i] for i in train[:: max(1, len(train) // 25)]])
     if SHARED_FRAMES.exists():
         report(member, "authors' 6", load_data(SHARED_FRAMES)[0][::5])
     aziridine = Path(args.data) / "references/pbe0_aug-cc-pvtz/qm7-0011.json"
