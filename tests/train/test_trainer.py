@@ -222,3 +222,13 @@ def test_an_interrupted_run_leaves_a_snapshot_of_its_last_finished_epoch(tmp_pat
     state = read_checkpoint(snap / "last.pt")["metadata"]["training"]
     assert state["epoch"] == 2 and snap.name == f"step-{state['step']:09d}"
     assert [r["epoch"] for r in _log(snap)] == ["1", "2"]
+
+
+def test_a_run_that_stopped_early_trains_no_more_when_resumed(tmp_path, small_data):
+    # lr 0: the validation loss never improves after epoch 1, so patience 1 stops after epoch 2
+    cfg = load_config(_config(tmp_path, small_data, "early"), [
+        "training.max_epochs=6", "training.lr=0.0", "training.patience=1"])
+    train(cfg)
+    assert [r["epoch"] for r in _log(tmp_path / "early")] == ["1", "2"]
+    train(cfg)  # e.g. the same study stage on a fresh clone, restored from a snapshot
+    assert [r["epoch"] for r in _log(tmp_path / "early")] == ["1", "2"]

@@ -258,6 +258,10 @@ class Trainer:
         stop_reason = "max_epochs"
         try:
             while self.epoch < t["max_epochs"]:
+                if t["patience"] is not None and self.bad_epochs >= int(t["patience"]):
+                    # checked first: a run resumed after it stopped early trains no more
+                    stop_reason = f"early stopping ({self.bad_epochs} epochs without improvement)"
+                    break
                 t0 = time.monotonic()
                 train_stats = self._train_epoch()
                 val = self.validate()
@@ -289,9 +293,6 @@ class Trainer:
                         + (" *" if improved else ""))
                 if self.dist:
                     dist.barrier()
-                if t["patience"] is not None and self.bad_epochs >= int(t["patience"]):
-                    stop_reason = f"early stopping ({self.bad_epochs} epochs without improvement)"
-                    break
                 if limit is not None and time.monotonic() - t_start > 60.0 * float(limit):
                     stop_reason = f"time limit ({limit} min; resume to continue)"
                     break
