@@ -262,35 +262,7 @@ class Trainer:
                     # checked first: a run resumed after it stopped early trains no more
                     stop_reason = f"early stopping ({self.bad_epochs} epochs without improvement)"
                     break
-                t0 = time.monotonic()
-                train_stats = self._train_epoch()
-                val = self.validate()
-                self.epoch += 1
-                improved = val["loss"] < self.best
-                if improved:
-                    self.best, self.best_epoch, self.bad_epochs = val["loss"], self.epoch, 0
-                else:
-                    self.bad_epochs += 1
-                row = {"epoch": self.epoch, "step": self.step,
-                       "lr": self.optimizer.param_groups[0]["lr"], **train_stats,
-                       **{f"val_{k}": v for k, v in val.items()},
-                       "best_epoch": self.best_epoch, "epoch_time": time.monotonic() - t0}
-                if self.rank == 0:
-                    if improved:
-                        save_model(self.model, out / "best.pt", self.metadata(val=val))
-                    save_model(self.model, last, self.metadata(training=self.training_state()))
-                    self._saved_step = self.step
-                    self._log(out / "log.csv", row)
-                    if self._snapshot_due():
-                        self._snapshot()
-                    if writer is not None:
-                        for k, v in row.items():
-                            writer.add_scalar(k, v, self.epoch)
-                    self._print(
-                        f"epoch {self.epoch}: loss {train_stats['train_loss']:.4g}, val loss"
-                        f" {val['loss']:.4g}, val F MAE {val.get('forces_mae', float('nan')):.4f}"
-                        f" eV/Å, E MAE {1000 * val.get('energy_mae', float('nan')):.2f} meV/atom"
-                        + (" *" if improved else ""))
+                self._epoch(writer)
                 if self.dist:
                     dist.barrier()
                 if limit is not None and time.monotonic() - t_start > 60.0 * float(limit):
@@ -305,6 +277,40 @@ class Trainer:
         if writer is not None:
             writer.close()
         return out / "best.pt"
+
+    def _epoch(self, writer) -> None:
+        """One epoch: train, validate, then (rank 0) best.pt, last.pt, the log row, a snapshot
+        when one is due, TensorBoard and the progress line."""
+        out = self.run_dir
+        t0 = time.monotonic()
+        train_stats = self._train_epoch()
+        val = self.validate()
+        self.epoch += 1
+        improved = val["loss"] < self.best
+        if improved:
+            self.best, self.best_epoch, self.bad_epochs = val["loss"], self.epoch, 0
+        else:
+            self.bad_epochs += 1
+        row = {"epoch": self.epoch, "step": self.step,
+               "lr": self.optimizer.param_groups[0]["lr"], **train_stats,
+               **{f"val_{k}": v for k, v in val.items()},
+               "best_epoch": self.best_epoch, "epoch_time": time.monotonic() - t0}
+        if self.rank == 0:
+            if improved:
+                save_model(self.model, out / "best.pt", self.metadata(val=val))
+            save_model(self.model, out / "last.pt", self.metadata(training=self.training_state()))
+            self._saved_step = self.step
+            self._log(out / "log.csv", row)
+            if self._snapshot_due():
+                self._snapshot()
+            if writer is not None:
+                for k, v in row.items():
+                    writer.add_scalar(k, v, self.epoch)
+            self._print(
+                f"epoch {self.epoch}: loss {train_stats['train_loss']:.4g}, val loss"
+                f" {val['loss']:.4g}, val F MAE {val.get('forces_mae', float('nan')):.4f}"
+                f" eV/Å, E MAE {1000 * val.get('energy_mae', float('nan')):.2f} meV/atom"
+                + (" *" if improved else ""))
 
     def _train_epoch(self) -> dict:
         from tqdm import tqdm
