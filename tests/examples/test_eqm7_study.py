@@ -36,6 +36,7 @@ def study_run(tmp_path_factory):
         "dft.level=tiny", "dft.boys_starts=1", "dft.fmax=0.05", "dft.max_steps=30",
         "ir.max_iterations=30", "ir.fmax=0.001",
         "md.time_fs=7.0", "md.checkpoint_every=7", "md.log_every=7",
+        f"training.snapshots={root / 'snapshots'}",  # not a git repository: nothing committed
     ]
     cfg = mod.load_config(ROOT / "examples" / "eqm7" / "config.yaml", overrides)
     lines: list[str] = []
@@ -53,6 +54,8 @@ def test_every_stage_writes_its_outputs(study_run):
         for seed in (0, 1):
             run = work / "models" / group / f"seed{seed}"
             assert (run / "best.pt").exists() and (run / "done.json").exists()
+            (snap,) = (root / "snapshots" / group / f"seed{seed}").iterdir()  # the final one
+            assert (snap / "best.pt").read_bytes() == (run / "best.pt").read_bytes()
             saved = (run / "config.yaml").read_text()
             assert f"enabled: {'true' if group == 'aug' else 'false'}" in saved
             name = f"{group}-s{seed}"
