@@ -293,3 +293,41 @@ def test_curvature_check_equals_the_exact_pair_hessian(trained):
         assert not r.failed, r.reason
         exact = np.linalg.eigvalsh(pair_hessian(trained, s.copy(pairs=r.pairs)))[0]
         assert r.min_curvature == pytest.approx(exact, abs=1e-4, rel=1e-3)
+
+
+def test_kept_graph_products_equal_fresh_ones_and_the_davidson_start_block(trained):
+    """Products from one kept gradient graph (single and stacked) equal fresh Hessian-vector
+    products, and Davidson with its start block in one stacked call gives the eigenvalues of
+    the one-by-one start; one structure alone (the calculator's case) matches the exact pair
+    Hessian."""
+    from emlpack.pairs.relax import davidson_min_curvature
+
+    starts = _starts("::100")
+    results = relax_pairs(trained, starts)
+    g = trained.graph([s.copy(pairs=r.pairs) for s, r in zip(starts, results, strict=True)],
+                      dtype=torch.float64)
+    prob = _PairProblem(trained, g)
+    x = g.positions[prob.pair_idx].clone()
+    v = torch.randn(3, *x.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    product = prob.hvp_operator(x)
+    fresh = torch.stack([prob.hvp(x, one) for one in v])
+    torch.testing.assert_close(product(v), fresh, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(product(v[1]), fresh[1], rtol=1e-12, atol=1e-12)
+
+    m = 3 * prob.n_max
+    mask = torch.arange(m)[None, :] < 3 * g.n_pairs[:, None]
+    model_h = prob.hessians(x, 6e6) + 0.1 * torch.eye(m)  # a (nearly exact) preconditioner
+
+    def padded(q: torch.Tensor) -> torch.Tensor:
+        if q.dim() == 2:
+            return prob.pad(product(prob.unpad(q)))
+        return torch.stack([prob.pad(one) for one in product(
+            torch.stack([prob.unpad(one) for one in q]))])
+
+    one_by_one = davidson_min_curvature(padded, mask, model_h, m)
+    stacked = davidson_min_curvature(padded, mask, model_h, m, batched_start=True)
+    torch.testing.assert_close(stacked, one_by_one, rtol=1e-10, atol=1e-10)
+
+    (alone,) = relax_pairs(trained, [starts[0]])
+    exact = np.linalg.eigvalsh(pair_hessian(trained, starts[0].copy(pairs=alone.pairs)))[0]
+    assert alone.min_curvature == pytest.approx(exact, abs=1e-4, rel=1e-3)

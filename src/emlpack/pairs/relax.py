@@ -234,11 +234,21 @@ class _PairProblem:
     def hvp(self, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
         """Hessian-vector product (P_total, 3) of the summed energy, reverse over reverse
         (measured: ~2.3 energy+gradient evaluations, 2.7x cheaper than forward over reverse)."""
-        x = x.detach().requires_grad_(True)
-        e = self.energy(x).sum()
-        (grad,) = torch.autograd.grad(e, x, create_graph=True)
-        (hv,) = torch.autograd.grad((grad * v.to(grad.dtype)).sum(), x)
-        return hv.detach()
+        return self.hvp_operator(x)(v)
+
+    def hvp_operator(self, x: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
+        """``v -> H v`` at ``x``, the gradient's graph built once and kept: each product is
+        one reverse pass (ethanol, one structure: 3.3 ms instead of 7.2 ms a product), and a
+        stack ``v`` (k, P_total, 3) takes one vectorised pass (4 products: 9.5 ms)."""
+        xx = x.detach().requires_grad_(True)
+        (grad,) = torch.autograd.grad(self.energy(xx).sum(), xx, create_graph=True)
+
+        def product(v: torch.Tensor) -> torch.Tensor:
+            (hv,) = torch.autograd.grad(grad, xx, v.to(grad.dtype), retain_graph=True,
+                                        is_grads_batched=v.dim() == 3)
+            return hv.detach()
+
+        return product
 
     def hessians(self, x: torch.Tensor, budget: float) -> torch.Tensor:
         """Padded pair-block Hessians (B, 3 Pmax, 3 Pmax); padding is the identity."""
@@ -444,6 +454,7 @@ class _ActiveEvaluator:
         self.model, self.full, self.fraction = model, prob, fraction
         self.members = torch.ones(prob.g.n_structures, dtype=torch.bool)
         self.sub, self.rows = prob, None
+        self._operator = None  # (sub problem, x, v -> H v) of the last products
 
     def _compact(self, active: torch.Tensor) -> None:
         if int(active.sum()) < self.fraction * int(self.members.sum()) or bool(
@@ -456,12 +467,20 @@ class _ActiveEvaluator:
 
     def hvp(self, x: torch.Tensor, v: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
         """Hessian-vector products [P_total, 3] of the ``active`` [n_struct] structures (zero
-        rows for the others); ``x``, ``v``: [P_total, 3]."""
+        rows for the others); ``x``: [P_total, 3], ``v``: [P_total, 3] or a stack [k, P_total,
+        3]. Products at the same ``x`` (the same tensor) reuse the gradient's graph until the
+        batch is compacted."""
         self._compact(active)
+        if self._operator is None or self._operator[0] is not self.sub or (
+            self._operator[1] is not x
+        ):
+            at = x if self.rows is None else x[self.rows]
+            self._operator = (self.sub, x, self.sub.hvp_operator(at))
+        product = self._operator[2]
         if self.rows is None:
-            return self.full.hvp(x, v)
+            return product(v)
         out = torch.zeros_like(v)
-        out[self.rows] = self.sub.hvp(x[self.rows], v[self.rows])
+        out[..., self.rows, :] = product(v[..., self.rows, :])
         return torch.where(active[self.full.pair_batch, None], out, 0.0)
 
     def __call__(self, x, active, energy, grad, long_range=True):
@@ -1043,6 +1062,7 @@ def davidson_min_curvature(
     steps: int,
     tol: float = 1e-3,
     block: int = 4,
+    batched_start: bool = False,
 ) -> torch.Tensor:
     """Smallest eigenvalue (B,) of every structure's exact pair Hessian restricted to ``mask``
     (B, m), given its products ``product(q) -> H q`` ((B, m) -> (B, m), padded pair
@@ -1052,7 +1072,9 @@ def davidson_min_curvature(
     know: measured on the fixture weights' hexane); one exact Hessian-vector product for the
     whole batch per iteration, at most ``steps``, stopped when every residual r satisfies
     ``r <= tol sqrt(|theta| scale)`` (scale: the model's largest curvature; the eigenvalue
-    error is ~ r^2 / gap: measured <= 5e-5 relative on hexane with both test models)."""
+    error is ~ r^2 / gap: measured <= 5e-5 relative on hexane with both test models).
+    ``batched_start``: ``product`` also takes a stack (k, B, m), and the ``block`` start
+    directions go through it in one call."""
     b, m = mask.shape
     dtype = model_hessian.dtype
     maskf = mask.to(dtype)
@@ -1062,11 +1084,14 @@ def davidson_min_curvature(
     scale = torch.clamp(lam.abs().masked_fill(~mask, 0.0).amax(1), min=1e-6)  # (B,)
     basis, images = [], []
     theta = torch.zeros(b, dtype=dtype)
+    starts = [torch.where(mask.sum(1, keepdim=True) > k, vec[:, :, k] * maskf, 0.0)
+              for k in range(min(block, steps, m))]  # the model's softest directions
+    start_images = product(torch.stack(starts)) if batched_start and starts else None
     for it in range(steps):
-        if it < block:  # start: the model's ``block`` softest directions
-            q = vec[:, :, it] * maskf
-            q = torch.where(mask.sum(1, keepdim=True) > it, q, 0.0)
-        hq = product(q) * maskf
+        if it < len(starts):
+            q = starts[it]
+        hq = (start_images[it] if start_images is not None and it < len(starts)
+              else product(q)) * maskf
         basis.append(q)
         images.append(hq)
         if it + 1 < block:
@@ -1130,11 +1155,18 @@ def _min_curvature(prob, x, grad, lower, upper, projected, opts, n_hess,
         xp = x.to(pp.g.dtype)
 
         def product(q: torch.Tensor) -> torch.Tensor:
-            v = prob.unpad(q)
-            active = prob.per_structure_max_norm(v) > 0
-            return prob.pad(evaluate.hvp(xp, v.to(xp.dtype), active).to(q.dtype))
+            """(B, m) or a stack (k, B, m) of padded directions -> their products."""
+            if q.dim() == 2:
+                v = prob.unpad(q)
+                active = prob.per_structure_max_norm(v) > 0
+                return prob.pad(evaluate.hvp(xp, v.to(xp.dtype), active).to(q.dtype))
+            v = torch.stack([prob.unpad(one) for one in q])
+            active = prob.per_structure_max_norm(v.abs().amax(0)) > 0
+            hv = evaluate.hvp(xp, v.to(xp.dtype), active).to(q.dtype)
+            return torch.stack([prob.pad(one) for one in hv])
 
-        min_curv = davidson_min_curvature(product, mask, model_hessian, steps)
+        min_curv = davidson_min_curvature(product, mask, model_hessian, steps,
+                                          batched_start=True)
         n_hess += 1
         return torch.where(mask.any(1), min_curv, torch.nan)
     if opts.check_curvature and prob.n_max:
