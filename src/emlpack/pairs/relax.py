@@ -37,7 +37,7 @@ at least ``float32_min_pairs`` pairs): while a structure's largest pair force is
 evaluations are float32 (Armijo test with a 1e-6 |E| allowance, steps below that resolution
 accepted on a lower pair-gradient norm), then float64, so the minima are float64 minima.
 
-``initial_hessian="exact"``: Newton with exact vectorised pair Hessians (forward over reverse),
+``initial_hessian="exact"``: Newton with exact pair Hessians (a column per reverse pass),
 refreshed when the line search backtracks or every ``hessian_every`` steps, damped BFGS updates
 in between. ``"bfgs"``: damped BFGS from a scaled identity.
 

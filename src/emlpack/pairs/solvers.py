@@ -304,7 +304,7 @@ class WarmStartSolver:
             pair_forces=out["pair_forces"], forces=out["forces"], start=start)
 
     def _exact_hessian(self, model: EMLP, structure: Structure) -> np.ndarray:
-        """Exact pair Hessian into ``self.hessian`` (vectorised Hessian-vector products); in
+        """Exact pair Hessian into ``self.hessian`` (:func:`pair_hessian`); in
         ``"corrected"`` mode the pair and core-pair blocks by forward differences of the full
         gradient (3P + 1 evaluations, counted as one Hessian; faster than the
         forward-over-reverse products of all particles). Returns the pair Hessian."""
