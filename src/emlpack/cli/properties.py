@@ -179,6 +179,7 @@ def prepare(args, periodic: bool | None, command: str) -> Prepared:
     return Prepared(members, structures, where, field_info, warnings, infos, log, left_out,
                     labels)
 
+
 def _broken(info: dict) -> bool:
     """Whether a member's relaxation record (``relax``) says its structure is broken."""
     opt = info.get("optimisation", {})

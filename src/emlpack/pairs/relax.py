@@ -578,6 +578,7 @@ def _missing_edges(model: EMLP, start: Structure, pairs: np.ndarray) -> bool:
     d1 = np.linalg.norm(p1[nc:, None] - p1[None], axis=-1)
     return bool(np.any((d1 < cutoff) & (d0 >= cutoff)))
 
+
 def _relax_once(model, structures, opts, bounds) -> list[RelaxResult]:
     """One relaxation of ``structures`` on graphs built at their start pairs."""
     if opts.initial_hessian != "coulomb":

@@ -40,7 +40,6 @@ def run_cp2k(command: list[str], run_dir: Path, omp_threads: int, timeout_s: flo
     return output
 
 
-
 def stop_group(proc: subprocess.Popen) -> None:
     """Terminate CP2K's process group (mpirun and its ranks), then kill it if it lingers."""
     try:
