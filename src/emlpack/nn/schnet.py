@@ -273,7 +273,7 @@ class SchNet(nn.Module):
         """Atomic energies (N,) from particle numbers and the half-list edge lengths ``r`` (Å)
         of the edges ``(i, j)``; with ``held`` (frozen weights only) the edges ``held.i``,
         ``held.j`` contribute with their held filters in addition."""
-        frozen = not any(p.requires_grad for p in self.parameters())
+        frozen = not any(p.requires_grad for p in self._parameter_list())
         if held is not None and not frozen:
             raise ValueError("held filters need frozen parameters (requires_grad=False)")
         if frozen:
@@ -303,8 +303,7 @@ class SchNet(nn.Module):
         parameter version): ``tables``, ``cross``, ``table_out``, ``w_out``, ``filters`` (per
         interaction ``(w1, b1, w2, b2, wc, bc)``, ``wc`` divided by the message norm) and
         ``heads``."""
-        params = list(self.parameters())
-        key = tuple((id(p), p._version, p.data_ptr()) for p in params)
+        key = self._parameter_key()
         caches = self.__dict__.setdefault("_fold_cache", {})  # per dtype and device
         cache = caches.get((dtype, str(device)))
         if cache is not None and cache[0] == key:
@@ -404,10 +403,27 @@ class SchNet(nn.Module):
             out.append((y2 * fc, y2d * fc + y2 * fc1, y2dd * fc + 2.0 * y2d * fc1 + y2 * fc2))
         return out
 
+    def _apply(self, fn, recurse=True):
+        # .to(), .double(), ... may replace the parameters: list them again
+        self.__dict__.pop("_parameters_listed", None)
+        return super()._apply(fn, recurse)
+
+    def _parameter_list(self) -> tuple[nn.Parameter, ...]:
+        """The parameters, listed once per conversion (walking the modules took 0.24 ms a
+        call, 7 % of hexane's energy+gradient; measured)."""
+        params = self.__dict__.get("_parameters_listed")
+        if params is None:
+            params = self.__dict__["_parameters_listed"] = tuple(self.parameters())
+        return params
+
+    def _parameter_key(self) -> tuple:
+        """Identity, version and storage of every parameter: changes when a weight does."""
+        return tuple((id(p), p._version, p.data_ptr()) for p in self._parameter_list())
+
     def filter_table(self, spacing: float = 1e-3) -> FilterTable:
         """The :class:`FilterTable` of the current (frozen) weights, cached per parameter
         version and spacing (Å)."""
-        key = tuple((id(p), p._version, p.data_ptr()) for p in self.parameters())
+        key = self._parameter_key()
         caches = self.__dict__.setdefault("_table_cache", {})
         cached = caches.get(spacing)
         if cached is None or cached[0] != key:

@@ -158,7 +158,8 @@ class RelaxOptions:
     #: table of this spacing (Å; :class:`emlpack.nn.schnet.FilterTable`) instead of the filter
     #: network (Hessian-vector products and exact Hessians keep the network). Measured on
     #: the trained benchmark model, 64 structures: energies within 3e-11 eV, pair gradients
-    #: within 2.5e-8 eV/Å, an energy+gradient 1.5x cheaper in float64 and float32 (0: off)
+    #: within 2.5e-8 eV/Å, an energy+gradient 1.5x cheaper in float64 and float32, the
+    #: relaxation benchmark 1.27x; batches of at least ``TABLE_MIN_EDGES`` pair edges; 0: off)
     filter_table: float = 1e-3
     #: failure thresholds of :func:`emlpack.pairs.checks.check_pairs` (Å)
     min_pair_distance: float = MIN_PAIR_DISTANCE
@@ -185,11 +186,18 @@ class RelaxOptions:
     flat_curvature: float = 1e-3
 
 
+#: the filter table (``RelaxOptions.filter_table``) only for batches with at least this many
+#: pair edges: building it costs ~0.15 s once per model and process (measured), which a
+#: single small molecule (hexane: ~600 pair edges, ~15 evaluations) would not earn back
+TABLE_MIN_EDGES = 2000
+
+
 class _PairProblem:
     """Energy, gradient and pair-block Hessians as functions of all pair coordinates."""
 
     def __init__(self, model: EMLP, g: Graph, hold_filters: bool = True,
-                 held: HeldFilters | None = None, filter_table: float = 0.0) -> None:
+                 held: HeldFilters | None = None, filter_table: float = 0.0,
+                 tabulate: bool | None = None) -> None:
         self.model = model
         self.g = g
         self.pair_idx = torch.nonzero(g.is_pair).squeeze(1)
@@ -210,10 +218,14 @@ class _PairProblem:
             if bool(core_core.any()):
                 self.held = model.hold_filters(g, core_core)
         # energies and gradients with the free edges' filters from a table (spacing
-        # ``filter_table`` Å, 0: off); Hessian-vector products keep the filter network
+        # ``filter_table`` Å, 0: off) when ``tabulate`` (None: in batches of at least
+        # TABLE_MIN_EDGES pair edges); Hessian-vector products keep the filter network
         self.filter_table = filter_table
+        if tabulate is None:
+            tabulate = self.held is not None and len(self.held.free) >= TABLE_MIN_EDGES
+        self.tabulated = bool(tabulate and filter_table > 0 and self.held is not None)
         self.held_tabulated = self.held
-        if self.held is not None and filter_table > 0:
+        if self.tabulated:
             self.held_tabulated = replace(self.held,
                                           table=model.schnet.filter_table(filter_table))
 
@@ -466,7 +478,8 @@ class _ActiveEvaluator:
             self.members = active.clone()
             self.sub = _PairProblem(self.model, _subgraph(self.full.g, active),
                                     held=_held_subset(self.full, active),
-                                    filter_table=self.full.filter_table)
+                                    filter_table=self.full.filter_table,
+                                    tabulate=self.full.tabulated)
             self.rows = active[self.full.pair_batch]
 
     def hvp(self, x: torch.Tensor, v: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
@@ -843,7 +856,7 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         held32 = None if prob.held is None else replace(
             prob.held, filters=[f.float() for f in prob.held.filters])
         prob32 = _PairProblem(model, g.to(dtype=torch.float32), held=held32,
-                              filter_table=prob.filter_table)
+                              filter_table=prob.filter_table, tabulate=prob.tabulated)
     work = prob32 if low else prob
     # plain EMLP: the model evaluations leave out the electrostatics, whose energy and gradient
     # come from the analytic derivatives computed at every iterate anyway (float64)
