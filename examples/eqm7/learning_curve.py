@@ -9,7 +9,7 @@ because of the training budget?
 
 **The grid.** For every prefix of the data set's shards (``--shards``, counts in labeling
 order, so that a prefix holds whole molecules) and every step budget (``--steps``), one
-augmented model (seed 0) trains with the study's ``train.yaml``.
+augmented model per seed (``--seeds``, default 0) trains with the study's ``train.yaml``.
 
 **The schedule.** Its epochs and learning-rate decay are scaled so that every run takes about
 the same optimizer steps on the same schedule: ``max_epochs = round(steps / steps_per_epoch)``,
@@ -75,8 +75,8 @@ def _steps_taken(run: Path) -> tuple[int, int, int]:
     return int(rows[-1]["step"]), int(rows[-1]["epoch"]), int(best["epoch"])
 
 
-def point(args, data: Path, n_shards: int, steps: int, test_data: Path) -> dict:
-    """Train (if needed) and evaluate one model; its row of the table."""
+def point(args, data: Path, n_shards: int, steps: int, test_data: Path) -> list[dict]:
+    """Train (if needed) and evaluate one model per seed; their rows of the table."""
     from emlpack.data.shards import read_shards
     from emlpack.train.config import load_config as load_train_config
 
@@ -85,7 +85,8 @@ def point(args, data: Path, n_shards: int, steps: int, test_data: Path) -> dict:
     split = shards.split_indices()
     train_molecules = {shards.structures[i].info["molecule_id"] for i in split["train"]}
     workdir = args.workdir / f"shards-{n_shards:02d}-steps-{steps}"
-    common = [f"workdir={workdir}", "groups=[aug]", "seeds=[0]", *args.set]
+    seeds = ",".join(str(k) for k in args.seeds)
+    common = [f"workdir={workdir}", "groups=[aug]", f"seeds=[{seeds}]", *args.set]
     if args.snapshots is not None:
         common.append(f"training.snapshots={args.snapshots / workdir.name}")
     base = run_study.load_config(args.config, common)
@@ -105,12 +106,18 @@ def point(args, data: Path, n_shards: int, steps: int, test_data: Path) -> dict:
                   log=log)
     run_study.run(["evaluate"], run_study.load_config(args.config,
                                                       [f"data={test_data}", *common]), log=log)
-    taken, epochs, best_epoch = _steps_taken(workdir / "models" / "aug" / "seed0")
-    row = {"shards": n_shards, "train_molecules": len(train_molecules),
-           "train_configurations": int(len(split["train"])), "steps_asked": steps,
+    return [_row(workdir, seed, n_shards, steps, train_molecules, len(split["train"]))
+            for seed in args.seeds]
+
+
+def _row(workdir: Path, seed: int, n_shards: int, steps: int, train_molecules: set,
+         n_train: int) -> dict:
+    taken, epochs, best_epoch = _steps_taken(workdir / "models" / "aug" / f"seed{seed}")
+    row = {"shards": n_shards, "seed": seed, "train_molecules": len(train_molecules),
+           "train_configurations": int(n_train), "steps_asked": steps,
            "steps": taken, "epochs": epochs, "best_epoch": best_epoch, "sets": {}}
     for set_dir in sorted((workdir / "eval").glob("*")):
-        ev = json.loads((set_dir / "aug-s0.json").read_text())
+        ev = json.loads((set_dir / f"aug-s{seed}.json").read_text())
         st, dy = ev["static"], ev.get("dynamic") or {}
         row["sets"][set_dir.name] = {
             "n_structures": ev["n_structures"],
@@ -127,13 +134,14 @@ def point(args, data: Path, n_shards: int, steps: int, test_data: Path) -> dict:
 
 def markdown(rows: list[dict]) -> str:
     sets = sorted({s for r in rows for s in r["sets"]}, key=lambda s: s != "test")
-    head = ["shards", "train molecules", "train configurations", "steps (best epoch)"]
+    head = ["shards", "seed", "train molecules", "train configurations", "steps (best epoch)"]
     for s in sets:
         head += [f"{s}: core forces MAE [meV/Å]", f"{s}: pair forces MAE [meV/Å]",
                  f"{s}: energy MAE [meV/atom]", f"{s}: slope"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
-        cells = [str(r["shards"]), str(r["train_molecules"]), str(r["train_configurations"]),
+        cells = [str(r["shards"]), str(r.get("seed", 0)), str(r["train_molecules"]),
+                 str(r["train_configurations"]),
                  f"{r['steps']} ({r['best_epoch']} of {r['epochs']})"]
         for s in sets:
             v = r["sets"].get(s)
@@ -156,6 +164,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--snapshots", type=Path, default=None,
                    help="commit every model's training state to SNAPSHOTS/shards-NN-steps-S"
                         " (a folder in the repository) so that a run goes on across sessions")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0],
+                   help="one model per seed at every point (rows per seed)")
     p.add_argument("--config", type=Path, default=HERE / "config.yaml", help="the study's")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                    help="more overrides of the study's config (e.g. train.model.n_features=32)")
@@ -163,8 +173,8 @@ def main(argv: list[str] | None = None) -> None:
                    help="write OUT.md and OUT.json (default: print only)")
     args = p.parse_args(argv)
     test_data = prefix_folder(args.data, max(args.shards), args.workdir / "data")
-    rows = [point(args, args.data, n, s, test_data)
-            for s in sorted(args.steps) for n in sorted(args.shards)]
+    rows = [row for s in sorted(args.steps) for n in sorted(args.shards)
+            for row in point(args, args.data, n, s, test_data)]
     text = markdown(rows)
     print(text)
     if args.out is not None:

@@ -54,3 +54,12 @@ def test_learning_curve_equal_steps_one_test_set_and_resume(tmp_path):
     lc.main(argv)
     assert [p.stat().st_mtime_ns for p in best] == stamps
     assert json.loads((tmp_path / "lc.json").read_text())["rows"] == rows
+    # a second seed at the same point: seed 0 is kept, seed 1 trains on the same schedule
+    lc.main([*argv[:3], "2", *argv[5:], "--seeds", "0", "1"])
+    rows2 = json.loads((tmp_path / "lc.json").read_text())["rows"]
+    assert [(r["shards"], r["seed"]) for r in rows2] == [(2, 0), (2, 1)]
+    assert best[1].stat().st_mtime_ns == stamps[1]
+    assert rows2[0]["sets"] == rows[1]["sets"]
+    assert (rows2[1]["steps"], rows2[1]["epochs"]) == (8, 2)
+    assert rows2[1]["sets"]["test"]["forces_meV_per_A"] != rows2[0]["sets"]["test"][
+        "forces_meV_per_A"]
