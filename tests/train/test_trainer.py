@@ -232,3 +232,33 @@ def test_a_run_that_stopped_early_trains_no_more_when_resumed(tmp_path, small_da
     assert [r["epoch"] for r in _log(tmp_path / "early")] == ["1", "2"]
     train(cfg)  # e.g. the same study stage on a fresh clone, restored from a snapshot
     assert [r["epoch"] for r in _log(tmp_path / "early")] == ["1", "2"]
+
+
+def test_init_weights_starts_a_fresh_run_from_a_checkpoint(tmp_path, small_data):
+    """Fine-tuning: a run with ``training.init_weights`` starts from that checkpoint's weights
+    (its first validation equals the source's at lr 0), with a fresh schedule and counters, on
+    other data too; a checkpoint of another architecture is refused in one line; a run that
+    resumes from its own last.pt ignores the setting."""
+    source = train(load_config(_config(tmp_path, small_data, "source"),
+                               ["training.max_epochs=2"]))
+    src_last = read_checkpoint(source.parent / "last.pt")
+    other = tmp_path / "other.xyz"
+    write_structures(other, read_structures(small_data)[::2])
+    cfg = load_config(_config(tmp_path, other, "tuned"),
+                      [f"training.init_weights={source.parent / 'last.pt'}",
+                       "training.max_epochs=1", "training.lr=0.0"])
+    tuned = train(cfg)
+    after = read_checkpoint(tuned.parent / "last.pt")
+    for name, value in src_last["state_dict"].items():
+        assert torch.equal(after["state_dict"][name], value), name
+    assert after["metadata"]["training"]["epoch"] == 1  # counters start afresh
+    # resuming its own run: the init is not applied again (epoch 1 -> 2 from last.pt)
+    cfg2 = load_config(_config(tmp_path, other, "tuned"),
+                       [f"training.init_weights={source.parent / 'last.pt'}",
+                        "training.max_epochs=2", "training.lr=0.01"])
+    train(cfg2)
+    rows = _log(tuned.parent)
+    assert [int(r["epoch"]) for r in rows] == [1, 2]
+    with pytest.raises(ValueError, match="n_features"):
+        train(load_config(_config(tmp_path, other, "wide"),
+                          [f"training.init_weights={source}", "model.n_features=24"]))

@@ -46,6 +46,10 @@ DEFAULTS: dict = {
         "patience": None,  # early stopping: epochs without improvement (None: off)
         "threads": None,
         "eval_batch_size": 64,
+        # a checkpoint (best.pt / last.pt of an earlier run) whose weights start a fresh run
+        # (fine-tuning, e.g. on a data set that grew): same model config; new optimizer and
+        # schedule; ignored when the run resumes from its own last.pt
+        "init_weights": None,
     },
     "output": {
         "dir": "runs/emlp",

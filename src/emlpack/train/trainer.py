@@ -225,6 +225,18 @@ class Trainer:
         self.bad_epochs = int(state["bad_epochs"])
         torch.set_rng_state(state["torch_rng"])
 
+    def init_weights(self, path: str | Path) -> None:
+        """Start from the weights of the checkpoint ``path`` (its model config must equal this
+        run's); optimizer, schedule and counters start afresh."""
+        payload = read_checkpoint(path)
+        saved = ModelConfig.from_dict(payload["config"])
+        if saved != self.model_config:
+            diff = sorted(k for k, v in saved.to_dict().items()
+                          if v != self.model_config.to_dict().get(k))
+            raise ConfigError(f"training.init_weights={path}: its model differs from this run's"
+                              f" model config in {', '.join(diff)}")
+        self.model.load_state_dict(payload["state_dict"])
+
     # ------------------------------------------------------------------ loop
     def train(self, resume: bool = True) -> Path:
         """Train until ``max_epochs``, early stopping or the time limit; returns best.pt."""
@@ -238,6 +250,9 @@ class Trainer:
         if resume and last.exists():
             self.resume(last)
             self._print(f"resumed from {last} at epoch {self.epoch}")
+        elif t["init_weights"]:
+            self.init_weights(t["init_weights"])
+            self._print(f"weights from {t['init_weights']}")
         if self.rank == 0:
             out.mkdir(parents=True, exist_ok=True)
             dump_config(self.cfg, out / "config.yaml")
