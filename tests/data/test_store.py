@@ -58,6 +58,12 @@ def test_round_trip_ragged_records(tmp_path):
             for name in ("forces", "stress"):
                 a, b = getattr(ref, name), getattr(got, name)
                 assert (a is None and b is None) or np.array_equal(a, b)
+        for k, bulk in enumerate(st):  # iteration reads whole columns: same as one by one
+            one = st[k]
+            assert bulk.info == one.info and bulk.source == one.source
+            for name in ("numbers", "positions", "pairs", "cell", "field", "forces", "stress"):
+                a, b = getattr(bulk, name), getattr(one, name)
+                assert (a is None and b is None) or np.array_equal(a, b)
         assert st[1].info["kind"] == "cell-nms" and st[-1].info["key"] == "ch4/1"
         np.testing.assert_array_equal(st[1].cell, np.eye(3) * 5.0)
         assert st[0].info["wall_time"] == 1.5 and "record 2" in st[2].source

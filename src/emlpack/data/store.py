@@ -181,8 +181,36 @@ class DatasetStore:
         return self.structure(index)
 
     def __iter__(self) -> Iterator[Structure]:
-        for i in range(len(self)):
-            yield self.structure(i)
+        """Every record in order; each column is read once for all of them (one record at a
+        time took ~20 HDF5 reads each: 2.2 s CPU for 1030 records of mini-eqm7)."""
+        n = len(self)
+        if n == 0:
+            return
+        f = self.file
+        rec = f["records"]
+        cols = {name: rec[name][:n] for name in (*_REC_INT, *_REC_FLOAT, *_REC_STR)}
+        cores = {name: f[f"cores/{name}"][:] for name in ("numbers", "positions", "forces")}
+        pairs = {name: f[f"pairs/{name}"][:] for name in ("positions", "forces")}
+        for i in range(n):
+            yield self._structure(self._record_from(cols, cores, pairs, i), i)
+
+    @staticmethod
+    def _record_from(cols: dict, cores: dict, pairs: dict, index: int) -> dict:
+        c0, nc = int(cols["core_start"][index]), int(cols["n_cores"][index])
+        p0, npair = int(cols["pair_start"][index]), int(cols["n_pairs"][index])
+        out = {
+            "numbers": np.array(cores["numbers"][c0:c0 + nc], dtype=np.int64),
+            "positions": np.array(cores["positions"][c0:c0 + nc]),
+            "forces": np.array(cores["forces"][c0:c0 + nc]),
+            "pairs": np.array(pairs["positions"][p0:p0 + npair]),
+            "pair_forces": np.array(pairs["forces"][p0:p0 + npair]),
+            "pbc": bool(cols["pbc"][index]),
+        }
+        for name in _REC_FLOAT:
+            out[name] = np.asarray(cols[name][index], dtype=np.float64)
+        for name in _REC_STR:
+            out[name] = _text(cols[name][index])
+        return out
 
     def record(self, index: int) -> dict:
         """Arrays of record ``index`` (reads only that record from disk)."""
@@ -194,23 +222,19 @@ class DatasetStore:
         rec = f["records"]
         c0, nc = int(rec["core_start"][index]), int(rec["n_cores"][index])
         p0, npair = int(rec["pair_start"][index]), int(rec["n_pairs"][index])
-        out = {
-            "numbers": f["cores/numbers"][c0:c0 + nc].astype(np.int64),
-            "positions": f["cores/positions"][c0:c0 + nc],
-            "forces": f["cores/forces"][c0:c0 + nc],
-            "pairs": f["pairs/positions"][p0:p0 + npair],
-            "pair_forces": f["pairs/forces"][p0:p0 + npair],
-            "pbc": bool(rec["pbc"][index]),
-        }
-        for name in _REC_FLOAT:
-            out[name] = np.asarray(rec[name][index], dtype=np.float64)
-        for name in _REC_STR:
-            out[name] = _text(rec[name][index])
-        return out
+        cols = {name: rec[name][index:index + 1] for name in (*_REC_INT, *_REC_FLOAT, *_REC_STR)}
+        cols["core_start"], cols["pair_start"] = np.array([0]), np.array([0])
+        cores = {name: f[f"cores/{name}"][c0:c0 + nc] for name in ("numbers", "positions",
+                                                                   "forces")}
+        pairs = {name: f[f"pairs/{name}"][p0:p0 + npair] for name in ("positions", "forces")}
+        return self._record_from(cols, cores, pairs, 0)
 
     def structure(self, index: int) -> Structure:
         """Record ``index`` as a :class:`Structure` (NaN labels become ``None``)."""
-        r = self.record(index)
+        n = len(self)
+        return self._structure(self.record(index), index % n if n else index)
+
+    def _structure(self, r: dict, index: int) -> Structure:
         energy = float(r["energy"])
         forces = r["forces"] if np.all(np.isfinite(r["forces"])) else None
         pair_forces = r["pair_forces"] if np.all(np.isfinite(r["pair_forces"])) else None

@@ -109,12 +109,16 @@ class Trainer:
         d = cfg["data"]
         if not d["path"]:
             raise ValueError("data.path is not set (extxyz file or HDF5 store)")
-        self.structures, store_hydrides = load_data(d["path"])
         sharded = is_sharded(d["path"])
         if d["split"] == "card" and not sharded:
             raise ValueError(f"{d['path']}: data.split=card needs a data-set folder with a card")
+        if sharded:
+            shards = read_shards(d["path"])
+            self.structures, store_hydrides = shards.structures, shards.hydrides
+        else:
+            self.structures, store_hydrides = load_data(d["path"])
         if d["split"] in ("auto", "card") and sharded:
-            self.split = read_shards(d["path"]).split_indices()
+            self.split = shards.split_indices()
         else:
             ids = [molecule_id(s) for s in self.structures]
             by = "molecule" if d["split"] == "auto" else d["split"]
