@@ -3,6 +3,7 @@ its analytic electrostatics equal autograd, and it reaches the exact-Newton mini
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -220,6 +221,20 @@ def test_overrides_do_not_change_the_callers_options():
     assert opts.fmax == 1e-3 and opts.max_iterations == 100
 
 
+@contextmanager
+def _frozen(model):
+    """``model`` with every parameter frozen (held filters and tables need it), restored
+    afterwards."""
+    flags = [p.requires_grad for p in model.parameters()]
+    for p in model.parameters():
+        p.requires_grad_(False)
+    try:
+        yield model
+    finally:
+        for p, f in zip(model.parameters(), flags, strict=True):
+            p.requires_grad_(f)
+
+
 @pytest.mark.parametrize("which", ["small", "trained"])
 def test_held_core_core_filters_equal_plain_evaluation(which, small, trained):
     """The relaxation's energy with the core-core SchNet filters computed once (cores fixed)
@@ -229,10 +244,7 @@ def test_held_core_core_filters_equal_plain_evaluation(which, small, trained):
     mol = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), index="60:62")
     crystal = read_structures(shared_path("data/beta_glycine_pbe_wannier.xyz"), index="0:1")
     structures = mol + crystal if set(model.config.elements) >= {1, 6, 7, 8} else mol
-    flags = [p.requires_grad for p in model.parameters()]
-    for p in model.parameters():
-        p.requires_grad_(False)
-    try:
+    with _frozen(model):
         g = model.graph(structures, dtype=torch.float64)
         plain = _PairProblem(model, g, hold_filters=False)
         held = _PairProblem(model, g)
@@ -247,9 +259,6 @@ def test_held_core_core_filters_equal_plain_evaluation(which, small, trained):
         v = torch.cos(torch.arange(x.numel(), dtype=x.dtype)).reshape(x.shape)
         h0, h1 = plain.hvp(x, v), held.hvp(x, v)
         assert torch.abs(h1 - h0).max() <= 1e-12 * torch.abs(h0).max()
-    finally:
-        for p, f in zip(model.parameters(), flags, strict=True):
-            p.requires_grad_(f)
 
 
 def test_tabulated_filters_reach_the_network_minima(trained, monkeypatch):
@@ -259,10 +268,7 @@ def test_tabulated_filters_reach_the_network_minima(trained, monkeypatch):
     batches keep the network."""
     mol = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), index="60:62")
     crystal = read_structures(shared_path("data/beta_glycine_pbe_wannier.xyz"), index="0:1")
-    flags = [p.requires_grad for p in trained.parameters()]
-    for p in trained.parameters():
-        p.requires_grad_(False)
-    try:
+    with _frozen(trained):
         g_small = trained.graph(mol[:1], dtype=torch.float64)
         assert _PairProblem(trained, g_small, filter_table=1e-3).held_tabulated.table is None
         monkeypatch.setattr(relax_module, "TABLE_MIN_EDGES", 0)
@@ -277,9 +283,6 @@ def test_tabulated_filters_reach_the_network_minima(trained, monkeypatch):
         assert torch.abs(g1 - g0).max() <= 1e-7 * torch.abs(g0).max()
         v = torch.cos(torch.arange(x.numel(), dtype=x.dtype)).reshape(x.shape)
         assert torch.equal(table.hvp(x, v), network.hvp(x, v))  # products keep the network
-    finally:
-        for p, f in zip(trained.parameters(), flags, strict=True):
-            p.requires_grad_(f)
     starts = _starts("::75")
     off = relax_pairs(trained, starts, fmax=1e-6, check_curvature=False, filter_table=0)
     on = relax_pairs(trained, starts, fmax=1e-6, check_curvature=False, filter_table=1e-3)
