@@ -201,8 +201,14 @@ def test_snapshots_outlive_the_run_folder_and_resume_exactly(tmp_path, small_dat
         train(load_config(tmp_path / "run.yaml", ["training.max_epochs=5"]))
 
 
+@pytest.mark.parametrize("stop", ["ctrl-c", "kill"])
 def test_an_interrupted_run_leaves_a_snapshot_of_its_last_finished_epoch(tmp_path, small_data,
-                                                                        monkeypatch):
+                                                                        monkeypatch, stop):
+    """Ctrl-C, or ``kill PID`` (SIGTERM: how a session's background trainings are stopped),
+    during epoch 3 leaves a snapshot of epoch 2; the SIGTERM handler is restored afterwards."""
+    import os
+    import signal
+
     from emlpack.train.trainer import Trainer
 
     snaps = tmp_path / "snapshots"
@@ -212,12 +218,16 @@ def test_an_interrupted_run_leaves_a_snapshot_of_its_last_finished_epoch(tmp_pat
 
     def interrupted(self):
         if self.epoch == 2:
-            raise KeyboardInterrupt
+            if stop == "kill":
+                os.kill(os.getpid(), signal.SIGTERM)
+            raise KeyboardInterrupt  # not reached after SIGTERM: its handler raises first
         return epoch(self)
 
     monkeypatch.setattr(Trainer, "_train_epoch", interrupted)
+    previous = signal.getsignal(signal.SIGTERM)
     with pytest.raises(KeyboardInterrupt):
         train(cfg)
+    assert signal.getsignal(signal.SIGTERM) == previous
     (snap,) = snaps.iterdir()
     state = read_checkpoint(snap / "last.pt")["metadata"]["training"]
     assert state["epoch"] == 2 and snap.name == f"step-{state['step']:09d}"

@@ -17,15 +17,12 @@ split, every molecule with 2-5 heavy atoms comes first, then a seeded sample of 
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import hashlib
 import io
 import logging
 import os
-import signal
 import socket
-import threading
 import time
 from collections import Counter
 from pathlib import Path
@@ -45,6 +42,7 @@ from emlpack.data.shards import (
     shard_paths,
 )
 from emlpack.data.store import DatasetStore, StoreError
+from emlpack.interrupts import terminate_as_interrupt
 from emlpack.qm.recipe import (
     LEGACY_FIELD_DISTRIBUTION,
     default_recipe,
@@ -323,7 +321,7 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
         return over
 
     sources = [(m["name"], m["smiles"]) for m in labeling_order(molecules)]
-    with _terminate_as_interrupt():
+    with terminate_as_interrupt():
         try:
             summary = run_labeling(sources, work, recipe, workers=workers, progress=progress,
                                    threads=threads, prep_dir=folder / "prepared",
@@ -334,20 +332,6 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
                 flush(store)
     return {"new_records": summary.n_new, "new_failures": summary.n_failed_new,
             "shards": [str(p) for p in state["shards"]], "wall_s": time.time() - t0}
-
-
-@contextlib.contextmanager
-def _terminate_as_interrupt():
-    """Within the block, SIGTERM (e.g. ``kill PID`` at the end of a session) raises
-    KeyboardInterrupt as Ctrl-C does, so the run stops through its ``finally`` clauses."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 # ---------------------------------------------------------------------------------- card

@@ -17,11 +17,11 @@ atomically) and continues exactly as an uninterrupted run would.
 
 Snapshots (``output.snapshot_dir``): a run that outlives its machine (a training longer than a
 session) copies ``last.pt``, ``best.pt`` and ``log.csv`` every ``output.snapshot_minutes`` and
-when it stops (also on Ctrl-C or an error) into a new folder ``snapshot_dir/step-NNNNNNNNN/``
-(written under a temporary name, then renamed; the older snapshot folders are removed),
-committed to git with ``output.snapshot_commit``. A run whose ``last.pt`` is missing or older
-than the newest snapshot starts from that snapshot, so the same command on a fresh clone goes
-on exactly where the last snapshot stopped.
+when it stops (also on Ctrl-C, ``kill PID`` or an error) into a new folder
+``snapshot_dir/step-NNNNNNNNN/`` (written under a temporary name, then renamed; the older
+snapshot folders are removed), committed to git with ``output.snapshot_commit``. A run whose
+``last.pt`` is missing or older than the newest snapshot starts from that snapshot, so the same
+command on a fresh clone goes on exactly where the last snapshot stopped.
 
 Learning rate: ``lr0 * decay_factor ** (step / (steps_per_epoch * decay_epochs))``, i.e.
 halved every ``decay_epochs`` epochs with the paper's defaults, decayed smoothly per step.
@@ -58,6 +58,7 @@ from emlpack.data.references import (
     load_hydrides,
 )
 from emlpack.data.shards import is_sharded, read_shards
+from emlpack.interrupts import terminate_as_interrupt
 from emlpack.nn.checkpoint import read_checkpoint, save_model
 from emlpack.nn.potential import EMLP, ModelConfig
 from emlpack.train.config import ConfigError, dump_config
@@ -275,22 +276,24 @@ class Trainer:
         self._saved_step = self._snapshot_step = self.step
         limit = t["max_time_minutes"]
         stop_reason = "max_epochs"
-        try:
-            while self.epoch < t["max_epochs"]:
-                if t["patience"] is not None and self.bad_epochs >= int(t["patience"]):
-                    # checked first: a run resumed after it stopped early trains no more
-                    stop_reason = f"early stopping ({self.bad_epochs} epochs without improvement)"
-                    break
-                self._epoch(writer)
-                if self.dist:
-                    dist.barrier()
-                if limit is not None and time.monotonic() - t_start > 60.0 * float(limit):
-                    stop_reason = f"time limit ({limit} min; resume to continue)"
-                    break
-        finally:  # also on Ctrl-C or an error: the state of the last finished epoch
-            if (self.rank == 0 and self.cfg["output"]["snapshot_dir"]
-                    and self._saved_step != self._snapshot_step):
-                self._snapshot()
+        with terminate_as_interrupt():  # ``kill PID`` stops as Ctrl-C does, with a snapshot
+            try:
+                while self.epoch < t["max_epochs"]:
+                    if t["patience"] is not None and self.bad_epochs >= int(t["patience"]):
+                        # checked first: a run resumed after it stopped early trains no more
+                        stop_reason = (f"early stopping ({self.bad_epochs} epochs without"
+                                       " improvement)")
+                        break
+                    self._epoch(writer)
+                    if self.dist:
+                        dist.barrier()
+                    if limit is not None and time.monotonic() - t_start > 60.0 * float(limit):
+                        stop_reason = f"time limit ({limit} min; resume to continue)"
+                        break
+            finally:  # also on Ctrl-C, SIGTERM or an error: the state of the last finished epoch
+                if (self.rank == 0 and self.cfg["output"]["snapshot_dir"]
+                        and self._saved_step != self._snapshot_step):
+                    self._snapshot()
         self._print(f"stopped: {stop_reason}; best epoch {self.best_epoch}"
                     f" (val loss {self.best:.4g})")
         if writer is not None:
