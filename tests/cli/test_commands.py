@@ -301,6 +301,26 @@ def test_evaluate_static_errors(tmp_path):
                          "--no-dynamic", "-o", str(tmp_path / "ev"), "--quiet"])
     assert rc == 0, err
     assert (tmp_path / "ev" / "evaluation.json").exists()
+    # an ensemble folder stands for its members (as a pretrained name does)
+    ensemble = tmp_path / "ensemble"
+    ensemble.mkdir()
+    for k in range(2):
+        save_model(random_model(k), ensemble / f"model-{k}.pt",
+                   metadata={"reference": {"kind": "constant", "value": 0.0}})
+    rc, text, err = run(["evaluate", str(ensemble), str(data), "--subset", "all",
+                         "--no-dynamic", "-o", str(tmp_path / "ens"), "--quiet"])
+    assert rc == 0, err
+    rows = json.loads((tmp_path / "ens" / "evaluation.json").read_text())
+    assert [r["model"] for r in rows] == [str(ensemble / f"model-{k}.pt") for k in range(2)]
+    # a split made on another data set is refused in one line, not applied by index
+    split_model = tmp_path / "split.pt"
+    save_model(random_model(0), split_model, metadata={
+        "reference": {"kind": "constant", "value": 0.0}, "data_path": "other.h5",
+        "n_structures": 8, "split": {"train": [0, 1, 2, 3, 4, 5], "val": [6], "test": [7]}})
+    rc, _, err = run(["evaluate", str(split_model), str(data), "--no-dynamic", "--quiet",
+                      "-o", str(tmp_path / "split")])
+    assert rc == 2 and len(err.strip().splitlines()) == 1
+    assert "made on other.h5 (8 structures)" in err and "--subset all" in err
     text_model = tmp_path / "notes.pt"
     text_model.write_text("not a model\n")
     rc, _, err = run(["evaluate", str(model_file), str(text_model), str(data)])

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 import sys
 
-from emlpack.cli.common import add_parser, load_model, positive
+from emlpack.cli.common import add_parser, load_model, model_files, positive
 from emlpack.errors import InputError
 
 
@@ -70,7 +70,8 @@ def add_evaluate(sub) -> None:
     p = add_parser(sub, "evaluate", help="static/dynamic error tables and parity plots of"
                        " trained model(s) (an ensemble gives mean ± std)")
     p.add_argument("paths", nargs="+", metavar="MODEL... DATA",
-                   help="one or more model checkpoints, then the data (extxyz or .h5)")
+                   help="one or more models (checkpoints, ensemble folders or pretrained names"
+                   " such as mini-eqm7), then the data (extxyz, .h5 or a shard folder)")
     p.add_argument("--subset", default="test", choices=["test", "val", "train", "all"],
                    help="subset of the data (the split stored with the model)")
     p.add_argument("-o", "--output", default="evaluation", help="output directory")
@@ -84,11 +85,13 @@ def add_evaluate(sub) -> None:
         log_to_stdout()
         if len(args.paths) < 2:
             raise InputError("give MODEL [MODEL ...] DATA")
-        for path in args.paths[:-1]:
-            load_model(path)  # the file checks, before the data are read
+        # an ensemble folder or a pretrained name stands for its members' files
+        files = [f for path in args.paths[:-1] for f in model_files(path)[0]]
+        for path in files:
+            load_model(str(path))  # the file checks, before the data are read
         positive(args.max_structures, "--max-structures")
         try:
-            table, _ = evaluate_models(args.paths[:-1], args.paths[-1], args.output,
+            table, _ = evaluate_models(files, args.paths[-1], args.output,
                                        args.subset, not args.no_dynamic, args.max_structures,
                                        progress=not args.quiet)
         except (ValueError, OSError) as exc:

@@ -251,10 +251,15 @@ def select_structures(structures, meta: dict, data_path: str | Path, subset: str
     split = meta.get("split")
     if not split or subset not in split:
         raise ValueError(f"the checkpoint holds no '{subset}' split; use --subset all")
-    if Path(meta.get("data_path", "")).resolve() != Path(data_path).resolve():
-        log.warning("the split was made on %s; applying its indices to %s",
-                    meta.get("data_path"), data_path)
-    return [structures[i] for i in split[subset]]
+    made_on = meta.get("data_path", "")
+    index = [int(i) for i in split[subset]]
+    if index and max(index) >= len(structures):
+        n_made = meta.get("n_structures", "?")
+        raise ValueError(f"the checkpoint's split was made on {made_on} ({n_made} structures),"
+                         f" {data_path} holds {len(structures)}; use --subset all")
+    if Path(made_on).resolve() != Path(data_path).resolve():
+        log.warning("the split was made on %s; applying its indices to %s", made_on, data_path)
+    return [structures[i] for i in index]
 
 
 def evaluate_models(model_paths, data_path, output, subset: str = "test",
