@@ -57,6 +57,25 @@ def test_help(command):
         assert "seed of the initial velocities (default: 0)" in " ".join(out.split())
 
 
+def test_model_argument_names_the_pretrained_models_and_help_needs_no_torch():
+    """``emlp CMD --help`` lists the installed pretrained names (an ensemble for the
+    commands that take one, one file of it for md) and stays fast: no torch import."""
+    import subprocess
+    import sys
+
+    from emlpack.pretrained import available
+
+    names = available()
+    assert names  # mini-eqm7 ships with the package
+    for command, words in (("ir", "a pretrained name"), ("md", "one file of an ensemble")):
+        out = " ".join(run([command, "--help"])[1].split())
+        assert words in out and all(n in out.replace("- ", "-") for n in names), command
+    code = ("import sys, emlpack.cli\n"
+            "emlpack.cli.build_parser()\n"
+            "assert 'torch' not in sys.modules, 'torch was imported'\n")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
 def test_version():
     from emlpack import __version__
 

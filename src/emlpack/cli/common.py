@@ -69,8 +69,18 @@ class Log:
 
 
 # --------------------------------------------------------------------------- arguments
-def add_model_argument(p) -> None:
-    p.add_argument("model", help="emlpack model file (.pt)")
+def add_model_argument(p, ensemble: bool = True) -> None:
+    """The MODEL argument; ``ensemble=False`` for the commands that take one model."""
+    from emlpack.pretrained import available as available_models
+
+    known = ", ".join(available_models()) or "none installed"
+    if ensemble:
+        text = ("an emlpack model file (.pt), a folder of them (an ensemble: mean and spread)"
+                f" or a pretrained name ({known})")
+    else:
+        text = ("an emlpack model file (.pt); one file of an ensemble folder or of a"
+                f" pretrained ensemble ({known})")
+    p.add_argument("model", help=text)
 
 
 def add_structure_arguments(p) -> None:

@@ -29,7 +29,7 @@ from emlpack.errors import InputError
 def add_md(sub) -> None:
     p = add_parser(sub, "md", "Born-Oppenheimer MD with relaxed electron pairs (NVT/NVE,"
                    " optional field); resumable", threads_default=1)
-    add_model_argument(p)
+    add_model_argument(p, ensemble=False)
     add_structure_arguments(p)
     p.add_argument("--frame", dest="index", help=argparse.SUPPRESS)  # the old name of --index
     p.add_argument("-o", "--output", default="md_run",

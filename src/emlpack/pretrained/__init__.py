@@ -16,8 +16,7 @@ training level. Nothing here downloads anything: the files are part of the insta
 from __future__ import annotations
 
 from pathlib import Path
-
-import torch
+from typing import TYPE_CHECKING
 
 from emlpack._files import write_text_atomic
 from emlpack.errors import EmlpackError
@@ -28,6 +27,10 @@ KNOWN = {
     "mini-eqm7": "ensemble trained on the mini-eQM7 campaign data set (PBE0/aug-cc-pVTZ,"
                  " neutral closed-shell H/C/N/O molecules up to 7 heavy atoms)",
 }
+
+
+if TYPE_CHECKING:
+    import torch
 
 
 class PretrainedError(EmlpackError, ValueError):
@@ -81,15 +84,20 @@ def model_card(name: str, root: Path | None = None) -> str:
 
 
 def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: str,
-                      dtype: torch.dtype = torch.float32, notice: str | None = None,
+                      dtype: torch.dtype | None = None, notice: str | None = None,
                       data_path: str | None = None) -> list[Path]:
     """Write trained checkpoints as a shippable pretrained model: ``folder/model-K.pt`` with
-    weights in ``dtype``, only the metadata a user needs (reference, elements, model config,
-    data path and split), and ``folder/card.md``. ``notice``: a line every calculation with
-    these models reports among its warnings (e.g. that the ensemble is preliminary, with its
-    measured errors); ``data_path``: how the metadata names the training data (default: the
-    checkpoint's own, which may be a local path). Returns the written files."""
+    weights in ``dtype`` (default float32), only the metadata a user needs (reference,
+    elements, model config, data path and split), and ``folder/card.md``. ``notice``: a line
+    every calculation with these models reports among its warnings (e.g. that the ensemble is
+    preliminary, with its measured errors); ``data_path``: how the metadata names the training
+    data (default: the checkpoint's own, which may be a local path). Returns the written
+    files."""
+    import torch
+
     from emlpack.nn.checkpoint import load_model, read_checkpoint, save_model
+
+    dtype = dtype or torch.float32
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
