@@ -268,6 +268,16 @@ def _load(path: Path):
 
 
 # ---------------------------------------------------------------------- train
+def model_overrides(training: dict, group: str, seed: int) -> list[str]:
+    """The training overrides of one model: ``training.overrides`` then the group's own
+    ``training.group_overrides[GROUP]``, with ``{group}`` and ``{seed}`` replaced (e.g. each
+    member fine-tuned from its own earlier run: ``training.init_weights=.../{group}/seed{seed}/
+    best.pt``)."""
+    extra = (training.get("group_overrides") or {}).get(group, [])
+    return [str(o).replace("{group}", group).replace("{seed}", str(seed))
+            for o in [*training.get("overrides", []), *extra]]
+
+
 def stage_train(study: Study) -> list[Path]:
     from emlpack.train.config import load_config as load_train_config
     from emlpack.train.trainer import train
@@ -297,7 +307,7 @@ def stage_train(study: Study) -> list[Path]:
             overrides = [f"data.path={study.data}", f"output.dir={run}",
                          f"augmentation.enabled={str(augmented).lower()}",
                          f"training.seed={seed}", "output.progress=false",
-                         *t.get("overrides", [])]
+                         *model_overrides(t, group, seed)]
             if t.get("snapshots"):  # trainings longer than a session: committed snapshots
                 overrides += [f"output.snapshot_dir={Path(t['snapshots']) / group / f'seed{seed}'}",
                               "output.snapshot_commit=true"]
@@ -1395,9 +1405,10 @@ def model_card(result: dict, name: str, group: str, n_models: int,
         "## Models", "",
         f"{n_models} {GROUP_LABEL[group]} models (seeds {', '.join(map(str, range(n_models)))};"
         f" training config `examples/eqm7/train.yaml` with overrides"
-        f" {cfg.get('overrides') or 'none'}), weights stored in float32. With several members"
-        " the calculator and every command report the mean and the spread (`energy_std`,"
-        " `forces_std`, `dipole_std`, ...) and warn when the spread is large.", "",
+        f" {model_overrides(cfg, group, '{seed}') or 'none'}), weights stored in float32."
+        " With several members the calculator and every command report the mean and the"
+        " spread (`energy_std`, `forces_std`, `dipole_std`, ...) and warn when the spread is"
+        " large.", "",
         "## Measured on molecules the models never saw (the card's test molecules)", ""]
     if g:
         s, dyn = g["static"], g["dynamic"]

@@ -182,6 +182,34 @@ def test_groups_restrict_training_to_the_chosen_group(study_run):
         bad.groups()
 
 
+def test_group_overrides_fine_tune_each_member_from_its_own_earlier_run(study_run):
+    """``training.group_overrides`` with ``{group}``/``{seed}``: each augmented member of a new
+    workdir starts from the same seed's model of the earlier run (at lr 0 its weights stay
+    the source's exactly, so a member started from another seed would be caught)."""
+    import torch
+
+    from emlpack.nn.checkpoint import read_checkpoint
+
+    mod, _, _, root, _ = study_run
+    assert mod.model_overrides({"overrides": ["a={seed}"], "group_overrides": {
+        "aug": ["b={group}/seed{seed}"]}}, "aug", 3) == ["a=3", "b=aug/seed3"]
+    source = root / "work" / "models" / "{group}" / "seed{seed}" / "best.pt"
+    cfg = mod.load_config(ROOT / "examples" / "eqm7" / "config.yaml", [
+        f"data={root / 'data'}", f"workdir={root / 'tuned'}", "seeds=[0, 1]", "groups=[aug]",
+        "train.model.n_features=8", "train.model.n_filters=8", "train.model.n_rbf=8",
+        "train.model.n_interactions=1", "train.training.max_epochs=1",
+        "train.training.batch_size=8", "train.training.lr=0.0",
+        "train.training.max_time_minutes=null", "train.training.eval_batch_size=64",
+        f"training.group_overrides={{aug: ['training.init_weights={source}']}}"])
+    study = mod.run(["train"], cfg, log=lambda m: None)
+    assert study.work["train"] == 2
+    for seed in (0, 1):
+        tuned = read_checkpoint(root / "tuned" / "models" / "aug" / f"seed{seed}" / "best.pt")
+        start = read_checkpoint(root / "work" / "models" / "aug" / f"seed{seed}" / "best.pt")
+        for key, value in start["state_dict"].items():
+            assert torch.equal(tuned["state_dict"][key], value), (seed, key)
+
+
 def test_rerun_redoes_nothing(study_run):
     mod, cfg, study, root, _ = study_run
     work = root / "work"
