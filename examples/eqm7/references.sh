@@ -9,8 +9,9 @@
 # .npz sub-results, NAME.json and NAME.ir.json, and the displacement files of NAME/vib/ that are
 # complete JSON (a file being written is never committed). Restart it after a session ends:
 # nothing finished is lost.
-# Log: runs/eqm7-references.log. Stop: kill both PIDs it prints (the watcher commits once more
-# when the stage ends by itself).
+# Log: runs/eqm7-references.log. Stop: `kill WATCHER_PID` (the PID it prints): the watcher stops
+# the dft stage, commits what is finished and exits (it also commits once more when the stage
+# ends by itself).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 PY=${PYTHON:-.venv/bin/python}
@@ -51,6 +52,8 @@ PYEOF
   OMP_WAIT_POLICY=PASSIVE nohup "$PY" examples/eqm7/run_study.py dft $names >> "$LOG" 2>&1 &
   job=$!
   echo "dft stage: PID $job, log $LOG"
+  # kill WATCHER_PID: stop the stage (its sub-steps are written atomically), commit, exit
+  trap 'kill "$job" 2>/dev/null; wait "$job" 2>/dev/null || true; commit_finished >> "$LOG" 2>&1 || true; exit 0' TERM
   while kill -0 "$job" 2>/dev/null; do
     for _ in $(seq $((${COMMIT_MINUTES:-20} * 6))); do
       kill -0 "$job" 2>/dev/null || break
