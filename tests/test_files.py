@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from emlpack._files import atomic_path, write_json_atomic, write_text_atomic
+from emlpack._files import atomic_path, try_lock, write_json_atomic, write_text_atomic
 
 
 def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
@@ -72,3 +72,29 @@ def test_figures_are_written_atomically_in_the_format_of_the_suffix(tmp_path):
     assert (tmp_path / "a.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert b"<svg" in (tmp_path / "a.svg").read_bytes()[:1000]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "a.svg"]  # no temporaries
+
+
+def test_a_lock_is_exclusive_and_dies_with_its_holder(tmp_path):
+    """One holder at a time (also another open of the same file in this process); a killed
+    holder leaves no stale lock."""
+    import os
+    import subprocess
+    import sys
+
+    path = tmp_path / "sub" / "x.lock"
+    fd = try_lock(path)
+    assert fd is not None and try_lock(path) is None
+    os.close(fd)
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time; from emlpack._files import try_lock\n"
+        f"assert try_lock({str(path)!r}) is not None; print('held', flush=True); time.sleep(60)")],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert try_lock(path) is None
+    finally:
+        holder.kill()
+        holder.wait()
+    fd = try_lock(path)
+    assert fd is not None
+    os.close(fd)

@@ -1,4 +1,4 @@
-"""Atomic file writes: a temporary file beside the target, then a rename (one home).
+"""Atomic file writes (a temporary file beside the target, then a rename) and lock files (one home).
 
 An interrupted write (a killed process, a full disk) leaves the previous file or none, never a
 truncated one. Every writer of the package goes through here (checkpoints, stores, shards,
@@ -7,6 +7,8 @@ extended XYZ, JSON, NPZ, plots):
 * :func:`atomic_path` yields a temporary *path* for writers that want a file name
   (``torch.save``, ``np.savez``, h5py, ``shutil.copyfile``);
 * :func:`atomic_write` calls ``write(handle)`` on an open text or binary handle;
+* :func:`try_lock` takes an exclusive lock on a lock file without waiting (one writer of a
+  store, one training of a run folder at a time);
 * :func:`write_bytes_atomic`, :func:`write_text_atomic`, :func:`write_json_atomic`,
   :func:`write_npz_atomic` and :func:`write_figure_atomic` (a matplotlib figure) write one
   value.
@@ -30,6 +32,7 @@ import numpy as np
 __all__ = [
     "atomic_path",
     "atomic_write",
+    "try_lock",
     "write_bytes_atomic",
     "write_figure_atomic",
     "write_json_atomic",
@@ -72,6 +75,23 @@ def atomic_write(
             write(fh)
             fh.flush()
             os.fsync(fh.fileno())
+
+
+def try_lock(path: str | os.PathLike) -> int | None:
+    """An exclusive advisory lock (``flock``) on the file ``path`` (created when missing),
+    taken without waiting: its file descriptor, held until closed (``os.close``) or until the
+    process ends (a killed holder leaves no stale lock), or None when another process holds
+    it."""
+    import fcntl
+
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(str(path), os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        return None
+    return fd
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:

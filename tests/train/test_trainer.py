@@ -234,6 +234,26 @@ def test_an_interrupted_run_leaves_a_snapshot_of_its_last_finished_epoch(tmp_pat
     assert [r["epoch"] for r in _log(snap)] == ["1", "2"]
 
 
+def test_one_training_per_run_folder(tmp_path, small_data):
+    """A second training in a folder whose training is still running is refused in one line
+    (the two would overwrite each other's checkpoints); once the first ends, it runs."""
+    import os
+
+    from emlpack._files import try_lock
+    from emlpack.train.config import ConfigError
+
+    cfg = load_config(_config(tmp_path, small_data, "run"), ["training.max_epochs=1"])
+    held = try_lock(tmp_path / "run" / "train.lock")  # as the running training holds it
+    try:
+        with pytest.raises(ConfigError, match="another training is running"):
+            train(cfg)
+        assert not (tmp_path / "run" / "last.pt").exists()
+    finally:
+        os.close(held)
+    train(cfg)
+    assert [r["epoch"] for r in _log(tmp_path / "run")] == ["1"]
+
+
 def test_a_run_that_stopped_early_trains_no_more_when_resumed(tmp_path, small_data):
     # lr 0: the validation loss never improves after epoch 1, so patience 1 stops after epoch 2
     cfg = load_config(_config(tmp_path, small_data, "early"), [

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from emlpack._files import atomic_path
+from emlpack._files import atomic_path, try_lock
 from emlpack.errors import EmlpackError
 from emlpack.structure import Structure
 
@@ -111,18 +111,11 @@ class DatasetStore:
 
     def _lock_writer(self) -> None:
         """Hold an exclusive lock on ``STORE.lock`` while appending (one writer at a time)."""
-        import fcntl
-
         if getattr(self, "_lock_fd", None) is not None:
             return
-        fd = os.open(str(self.path) + ".lock", os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            raise StoreError(
-                f"{self.path}: another process is writing to this store"
-            ) from None
+        fd = try_lock(str(self.path) + ".lock")
+        if fd is None:
+            raise StoreError(f"{self.path}: another process is writing to this store")
         self._lock_fd = fd
 
     @property

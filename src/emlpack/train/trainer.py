@@ -47,7 +47,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from emlpack._files import atomic_path, atomic_write, write_text_atomic
+from emlpack._files import atomic_path, atomic_write, try_lock, write_text_atomic
 from emlpack.commits import git_commit
 from emlpack.data.augment import AugmentationConfig
 from emlpack.data.dataset import Collater, load_data, make_batch, molecule_id, split_indices
@@ -245,6 +245,20 @@ class Trainer:
     # ------------------------------------------------------------------ loop
     def train(self, resume: bool = True) -> Path:
         """Train until ``max_epochs``, early stopping or the time limit; returns best.pt."""
+        out = self.run_dir
+        lock = None
+        if self.rank == 0:  # one training per run folder (two would overwrite each other)
+            lock = try_lock(out / "train.lock")
+            if lock is None:
+                raise ConfigError(f"{out}: another training is running in this folder (its"
+                                  " train.lock is held); wait for it or use another output.dir")
+        try:
+            return self._train(resume)
+        finally:
+            if lock is not None:
+                os.close(lock)
+
+    def _train(self, resume: bool) -> Path:
         t = self.cfg["training"]
         out = self.run_dir
         last = out / "last.pt"
