@@ -21,16 +21,15 @@ from typing import TYPE_CHECKING
 from emlpack._files import write_text_atomic
 from emlpack.errors import EmlpackError
 
+if TYPE_CHECKING:
+    import torch
+
 PRETRAINED_DIR = Path(__file__).resolve().parent
 #: the names emlpack knows, with what each one is (whether or not its files are installed)
 KNOWN = {
     "mini-eqm7": "ensemble trained on the mini-eQM7 campaign data set (PBE0/aug-cc-pVTZ,"
                  " neutral closed-shell H/C/N/O molecules up to 7 heavy atoms)",
 }
-
-
-if TYPE_CHECKING:
-    import torch
 
 
 class PretrainedError(EmlpackError, ValueError):
