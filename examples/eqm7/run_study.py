@@ -268,7 +268,7 @@ def _load(path: Path):
 
 
 # ---------------------------------------------------------------------- train
-def model_overrides(training: dict, group: str, seed: int) -> list[str]:
+def model_overrides(training: dict, group: str, seed: int | str) -> list[str]:
     """The training overrides of one model: ``training.overrides`` then the group's own
     ``training.group_overrides[GROUP]``, with ``{group}`` and ``{seed}`` replaced (e.g. each
     member fine-tuned from its own earlier run: ``training.init_weights=.../{group}/seed{seed}/
