@@ -9,6 +9,7 @@ whose one-line message names the file, the frame and the problem; ``emlp`` print
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
@@ -69,11 +70,17 @@ class Log:
 
 
 # --------------------------------------------------------------------------- arguments
+@functools.cache
+def _pretrained_names() -> str:
+    """The installed pretrained names for the help texts (the folder is listed once)."""
+    from emlpack.pretrained import available
+
+    return ", ".join(available()) or "none installed"
+
+
 def add_model_argument(p, ensemble: bool = True) -> None:
     """The MODEL argument; ``ensemble=False`` for the commands that take one model."""
-    from emlpack.pretrained import available as available_models
-
-    known = ", ".join(available_models()) or "none installed"
+    known = _pretrained_names()
     if ensemble:
         text = ("an emlpack model file (.pt), a folder of them (an ensemble: mean and spread)"
                 f" or a pretrained name ({known})")
