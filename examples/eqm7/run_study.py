@@ -51,6 +51,7 @@ import os
 import sys
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -662,39 +663,46 @@ def _dft_structure(r: dict):
 
 
 # ---------------------------------------------------------------------- polarizability
+def _at_dft_optima(study: Study, stage: str, row: Callable[[object, object], dict]) -> None:
+    """Stage ``stage`` of every model at the DFT optimum of every reference molecule:
+    ``row(model, structure)`` (the DFT structure with its Boys centres) gives one molecule's
+    JSON row; WORKDIR/STAGE/NAME.json is skipped when it holds every reference molecule."""
+    refs = dft_results(study)
+    if not refs:
+        study.log(f"{stage}: no DFT reference yet (run the dft stage), skipped")
+        return
+    for group, name, path in study.require_models():
+        target = study.workdir / stage / f"{name}.json"
+        if target.exists() and set(_read_json(target)["molecules"]) >= set(refs):
+            study.log(f"{stage}: {name} exists, skipped")
+            continue
+        model, _, _ = _load(path)
+        rows = {mol: row(model, _dft_structure(r)) for mol, r in refs.items()}
+        _write_json(target, {"group": group, "name": name, "model": str(path),
+                             "molecules": rows})
+        study.work[stage] += 1
+        study.log(f"{stage}: {name}: {len(rows)} molecules")
+
+
 def stage_polarizability(study: Study) -> None:
     from emlpack.pairs.relax import relax_pairs
     from emlpack.properties.response import molecule_response
 
-    refs = dft_results(study)
-    if not refs:
-        study.log("polarizability: no DFT reference yet (run the dft stage), skipped")
-        return
-    for group, name, path in study.require_models():
-        target = study.workdir / "polarizability" / f"{name}.json"
-        if target.exists() and set(_read_json(target)["molecules"]) >= set(refs):
-            study.log(f"polarizability: {name} exists, skipped")
-            continue
-        model, _, _ = _load(path)
-        rows = {}
-        for mol, r in refs.items():
-            s = _dft_structure(r)
-            res = relax_pairs(model, s)[0]
-            shift = float(np.linalg.norm(res.pairs - s.pairs, axis=1).max()) if s.n_pairs else 0.
-            failure = res.reason or (f"a pair moved {shift:.2f} Å from its DFT centre"
-                                     if shift > 0.5 else "")
-            row = {"failure": failure, "max_pair_shift": shift}
-            if not failure:
-                try:
-                    resp = molecule_response(model, s.copy(pairs=res.pairs), relax_cores=False)
-                    row["polarizability_bohr3"] = resp.as_dict()["polarizability_bohr3"]
-                except (np.linalg.LinAlgError, ValueError) as exc:
-                    row["failure"] = f"response failed: {exc}"
-            rows[mol] = row
-        _write_json(target, {"group": group, "name": name, "model": str(path),
-                             "molecules": rows})
-        study.work["polarizability"] += 1
-        study.log(f"polarizability: {name}: {len(rows)} molecules")
+    def row(model, s) -> dict:
+        res = relax_pairs(model, s)[0]
+        shift = float(np.linalg.norm(res.pairs - s.pairs, axis=1).max()) if s.n_pairs else 0.
+        failure = res.reason or (f"a pair moved {shift:.2f} Å from its DFT centre"
+                                 if shift > 0.5 else "")
+        out = {"failure": failure, "max_pair_shift": shift}
+        if not failure:
+            try:
+                resp = molecule_response(model, s.copy(pairs=res.pairs), relax_cores=False)
+                out["polarizability_bohr3"] = resp.as_dict()["polarizability_bohr3"]
+            except (np.linalg.LinAlgError, ValueError) as exc:
+                out["failure"] = f"response failed: {exc}"
+        return out
+
+    _at_dft_optima(study, "polarizability", row)
 
 
 def polarizability_summary(study: Study) -> dict | None:
@@ -753,47 +761,31 @@ def stage_ir(study: Study) -> None:
     from emlpack.properties.optimize import optimize
 
     c = study.cfg.get("ir", {})
-    refs = dft_results(study)
-    if not refs:
-        study.log("ir: no DFT reference yet (run the dft stage), skipped")
-        return
-    for group, name, path in study.require_models():
-        target = study.workdir / "ir" / f"{name}.json"
-        if target.exists() and set(_read_json(target)["molecules"]) >= set(refs):
-            study.log(f"ir: {name} exists, skipped")
-            continue
-        model, _, _ = _load(path)
-        rows = {}
-        for mol, r in refs.items():
-            s = _dft_structure(r)
-            row: dict = {"failure": ""}
-            res = relax_pairs(model, s)[0]
-            if res.reason:
-                rows[mol] = {"failure": f"pair relaxation at the DFT geometry: {res.reason}"}
-                continue
-            try:
-                o = optimize(model, s.copy(pairs=res.pairs), fmax=float(c.get("fmax", 1e-4)),
-                             max_iterations=int(c.get("max_iterations", 100)))
-                spec = ir_spectrum(model, o.structure)
-            except (np.linalg.LinAlgError, ValueError, RuntimeError) as exc:
-                rows[mol] = {"failure": f"{type(exc).__name__}: {exc}"}
-                continue
-            changes = bonding_changes(s.numbers, s.positions, o.structure.positions)
-            row.update(converged=bool(o.converged), iterations=int(o.iterations),
-                       reason=o.reason, bonding_changes=changes,
-                       rmsd_vs_dft_A=float(np.sqrt(((o.structure.positions - s.positions) ** 2)
-                                                   .sum(1).mean())),
-                       frequencies=spec.frequencies.tolist(),
-                       intensities=spec.intensities.tolist())
-            if changes:
-                row["failure"] = "bonding changed: " + "; ".join(changes)
-            elif o.pair_check:
-                row["failure"] = f"broken electron pairs: {o.pair_check}"
-            rows[mol] = row
-        _write_json(target, {"group": group, "name": name, "model": str(path),
-                             "molecules": rows})
-        study.work["ir"] += 1
-        study.log(f"ir: {name}: {len(rows)} molecules")
+
+    def row(model, s) -> dict:
+        res = relax_pairs(model, s)[0]
+        if res.reason:
+            return {"failure": f"pair relaxation at the DFT geometry: {res.reason}"}
+        try:
+            o = optimize(model, s.copy(pairs=res.pairs), fmax=float(c.get("fmax", 1e-4)),
+                         max_iterations=int(c.get("max_iterations", 100)))
+            spec = ir_spectrum(model, o.structure)
+        except (np.linalg.LinAlgError, ValueError, RuntimeError) as exc:
+            return {"failure": f"{type(exc).__name__}: {exc}"}
+        changes = bonding_changes(s.numbers, s.positions, o.structure.positions)
+        out = {"failure": "", "converged": bool(o.converged), "iterations": int(o.iterations),
+               "reason": o.reason, "bonding_changes": changes,
+               "rmsd_vs_dft_A": float(np.sqrt(((o.structure.positions - s.positions) ** 2)
+                                              .sum(1).mean())),
+               "frequencies": spec.frequencies.tolist(),
+               "intensities": spec.intensities.tolist()}
+        if changes:
+            out["failure"] = "bonding changed: " + "; ".join(changes)
+        elif o.pair_check:
+            out["failure"] = f"broken electron pairs: {o.pair_check}"
+        return out
+
+    _at_dft_optima(study, "ir", row)
     summary = ir_summary(study)
     if summary and (study.work["ir"] or not (study.workdir / "figure4_ir.png").exists()):
         figure4(study, summary)
