@@ -1369,6 +1369,11 @@ def model_card(result: dict, name: str, group: str, n_models: int,
     ir = ((result.get("ir") or {}).get("groups") or {}).get(group)
     md = ((result.get("md") or {}).get("groups") or {}).get(group)
     cfg = result.get("train_config", {})
+    members = [name for name in result.get("models", {}) if name.startswith(f"{group}-s")]
+    seeds = [name.removeprefix(f"{group}-s") for name in members]
+    runs = [(result.get("training") or {}).get(name) for name in members]
+    done = sorted({(run["epochs"], run["n_train"]) for run in runs if run})
+    epochs = "".join(f"{e} epochs over {n} training configurations; " for e, n in done)
     lines = [
         f"# {name}: an eMLP ensemble trained on mini-eQM7", "",
         f"Status: **{result['status']}** (generated {result['generated']} by"
@@ -1377,7 +1382,7 @@ def model_card(result: dict, name: str, group: str, n_models: int,
         lines += [
             f"**Preliminary.** Trained on the {d['configurations']} configurations labeled so"
             " far, a fraction of the campaign's target (1500 configurations of 250 molecules),"
-            " with a small architecture and short training on 2 CPU cores. Its errors below are"
+            " with a small architecture trained on 2 CPU cores. Its errors below are"
             " several times the paper's: use it to explore and to set up workflows, check what"
             " matters with DFT, and watch the ensemble spread and the warnings. The final"
             " ensemble replaces it when the data set is complete.", ""]
@@ -1395,8 +1400,8 @@ def model_card(result: dict, name: str, group: str, n_models: int,
         " molecule, fixed in `molecules.csv` before labeling); normal-mode sampling at 600 and"
         " 800 K, torsions and dimers with CH4/NH3/H2O as in the paper.", "",
         "## Models", "",
-        f"{n_models} {GROUP_LABEL[group]} models (seeds {', '.join(map(str, range(n_models)))};"
-        f" training config `examples/eqm7/train.yaml` with overrides"
+        f"{n_models} {GROUP_LABEL[group]} models (seeds {', '.join(seeds)};"
+        f" {epochs}training config `examples/eqm7/train.yaml` with overrides"
         f" {model_overrides(cfg, group, '{seed}') or 'none'}), weights stored in float32."
         " With several members the calculator and every command report the mean and the"
         " spread (`energy_std`, `forces_std`, `dipole_std`, ...) and warn when the spread is"

@@ -152,6 +152,8 @@ def test_export_ships_the_augmented_ensemble_with_its_card(study_run):
     assert f"{1000 * mae:.1f}" in card            # the measured core-force MAE is quoted
     assert "PBE0/aug-cc-pVTZ" in card and "How to cite" in card and "Domain" in card
     assert "Status: **preliminary**" in card and "**Preliminary.**" in card
+    n_train = result["data"]["by_split"]["train"]["configurations"]
+    assert f"(seeds 0, 1; 2 epochs over {n_train} training configurations;" in card
     # and every calculation with it says so, with the measured error
     assert all(m.notice and "preliminary" in m.notice and f"{1000 * mae:.0f} meV/Å" in m.notice
                for m in ensemble.members)
