@@ -200,6 +200,11 @@ def test_export_pretrained_float32_round_trip(checkpoints, tmp_path):
     files = export_pretrained(paths, root / "toy", "# toy\n\ntwo perturbed fixture models\n")
     assert [f.name for f in files] == ["model-0.pt", "model-1.pt", "card.md"]
     assert model_card("toy", root).startswith("# toy")
+    # exported again with fewer members: the folder holds only the new ensemble
+    export_pretrained(paths, root / "smaller", "# smaller\n")
+    export_pretrained(paths[:1], root / "smaller", "# smaller\n")
+    assert sorted(p.name for p in (root / "smaller").iterdir()) == ["card.md", "model-0.pt"]
+    assert len(load_pretrained("smaller", root=root).members) == 1
     s = _ethanol()
     energies = {}
     for label, model in (("full", folder), ("shipped", "toy")):

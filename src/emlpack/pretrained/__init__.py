@@ -90,8 +90,9 @@ def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: s
     elements, model config, data path and split), and ``folder/card.md``. ``notice``: a line
     every calculation with these models reports among its warnings (e.g. that the ensemble is
     preliminary, with its measured errors); ``data_path``: how the metadata names the training
-    data (default: the checkpoint's own, which may be a local path). Returns the written
-    files."""
+    data (default: the checkpoint's own, which may be a local path). The folder's earlier
+    members are replaced: a ``model-K.pt`` beyond the new ensemble's size is removed. Returns
+    the written files."""
     import torch
 
     from emlpack.nn.checkpoint import load_model, read_checkpoint, save_model
@@ -115,6 +116,8 @@ def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: s
         if data_path:
             out["data_path"] = data_path
         written.append(save_model(model, folder / f"model-{k}.pt", out))
+    for stale in set(folder.glob("model-*.pt")) - set(written):
+        stale.unlink()  # a member of a larger earlier ensemble
     card_path = folder / "card.md"
     write_text_atomic(card_path, card)
     return [*written, card_path]
