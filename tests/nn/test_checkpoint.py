@@ -35,6 +35,9 @@ def test_round_trip(tmp_path):
     assert a["energy"] == b["energy"]
     np.testing.assert_array_equal(a["forces"], b["forces"])
     assert not list(tmp_path.glob("*.tmp"))
+    # the same model and metadata give the same bytes, whatever the file's name
+    again = save_model(model, tmp_path / "other.pt", metadata={"note": "x"})
+    assert again.read_bytes() == path.read_bytes()
 
 
 def test_foreign_files_are_refused(tmp_path):

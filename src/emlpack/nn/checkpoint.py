@@ -39,8 +39,11 @@ def save_model(model: EMLP, path: str | Path, metadata: dict | None = None) -> P
         "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
         "metadata": dict(metadata or {}),
     }
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
+    # through a file object: the archive's records are then named "archive/...", not after
+    # the temporary file, so the same model and metadata always give the same bytes (a
+    # committed snapshot or pretrained file written again adds nothing to the repository)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        torch.save(payload, f)
     return path
 
 
