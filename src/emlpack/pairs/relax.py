@@ -184,6 +184,14 @@ class RelaxOptions:
     #: flat (cylindrical symmetry), and a relaxation stopped at ``fmax`` = 1e-4 eV/Å sits
     #: anywhere along it (measured: docs/relaxation.md)
     flat_curvature: float = 1e-3
+    #: a relaxation that ends at a saddle (converged, its only failure a pair curvature at or
+    #: below ``-flat_curvature``; e.g. a symmetric start whose gradient keeps the symmetry) is
+    #: displaced along the softest mode of the exact pair Hessian, both ways, and relaxed
+    #: again, at most this many times; the lower minimum is kept (0: off; needs
+    #: ``check_curvature``)
+    saddle_escapes: int = 2
+    #: ... by this much (Å, the largest pair displacement)
+    saddle_step: float = 0.1
 
 
 #: the filter table (``RelaxOptions.filter_table``) only for batches with at least this many
@@ -611,7 +619,8 @@ def _missing_edges(model: EMLP, start: Structure, pairs: np.ndarray) -> bool:
 def _relax_once(model, structures, opts, bounds) -> list[RelaxResult]:
     """One relaxation of ``structures`` on graphs built at their start pairs."""
     if opts.initial_hessian != "coulomb":
-        return _relax(model, structures, opts, bounds)
+        return _escape_saddles(model, structures, _relax(model, structures, opts, bounds),
+                               opts, bounds)
     results = _relax_coulomb(model, structures, opts, bounds)
     # a failed quasi-Newton relaxation (e.g. slid into a merged pair, off to a neighbouring
     # basin of a poorly trained model) is tried again with the exact-Hessian Newton method
@@ -625,6 +634,57 @@ def _relax_once(model, structures, opts, bounds) -> list[RelaxResult]:
             if r.failed:
                 r.reason = f"{results[k].reason} (exact-Hessian retry: {r.reason})"
             results[k] = _after(results[k], r)
+    return _escape_saddles(model, structures, results, opts, bounds)
+
+
+def _at_saddle(structure: Structure, result: RelaxResult, opts: RelaxOptions) -> bool:
+    """Whether ``result`` failed only by a negative pair curvature (a converged saddle)."""
+    return bool(
+        result.failed and result.max_force < opts.fmax
+        and np.isfinite(result.min_curvature) and result.min_curvature <= -opts.flat_curvature
+        and not check_pairs(result.pairs, structure.positions, structure.cell, structure.pbc,
+                            min_pair_distance=opts.min_pair_distance,
+                            max_core_distance=opts.max_core_distance)
+    )
+
+
+def _escape_saddles(model, structures, results, opts, bounds) -> list[RelaxResult]:
+    """``results`` with every converged saddle (:func:`_at_saddle`) relaxed again from its
+    pairs displaced by ``opts.saddle_step`` along the softest mode of the exact pair Hessian,
+    both ways (at most ``opts.saddle_escapes`` rounds): the lowest successful result replaces
+    it, counts added up (one exact Hessian per escape)."""
+    if opts.saddle_escapes <= 0 or not opts.check_curvature:
+        return results
+    inner = replace(opts, saddle_escapes=0)
+    for _ in range(opts.saddle_escapes):
+        stuck = [k for k, r in enumerate(results) if _at_saddle(structures[k], r, opts)]
+        if not stuck:
+            break
+        starts, owners = [], []
+        for k in stuck:
+            at = structures[k].copy(pairs=results[k].pairs)
+            mode = np.linalg.eigh(pair_hessian(model, at))[1][:, 0].reshape(-1, 3)
+            mode *= opts.saddle_step / np.linalg.norm(mode, axis=1).max()
+            for sign in (1.0, -1.0):
+                pairs = at.pairs + sign * mode
+                if bounds is not None and bounds[k] is not None:
+                    pairs = np.clip(pairs, *bounds[k])
+                starts.append(at.copy(pairs=pairs))
+                owners.append(k)
+        again = _relax_once(model, starts, inner,
+                            None if bounds is None else [bounds[k] for k in owners])
+        for k in stuck:
+            tries = [r for o, r in zip(owners, again, strict=True) if o == k]
+            # a minimum first, then a saddle to escape from in the next round; lowest energy
+            best = min(tries, key=lambda r: (r.failed, not _at_saddle(structures[k], r, opts),
+                                             r.energy))
+            for r in tries:
+                if r is not best:
+                    best = _after(r, best)
+            best.n_hessians += 1
+            if best.failed:
+                best.reason += " (relaxed again from a saddle along its softest mode)"
+            results[k] = _after(results[k], best)
     return results
 
 
@@ -1114,7 +1174,7 @@ def davidson_min_curvature(
               else product(q)) * maskf
         basis.append(q)
         images.append(hq)
-        if it + 1 < block:
+        if it + 1 < len(starts):  # the Ritz step once all start directions are in
             continue
         qs, hqs = torch.stack(basis, 2), torch.stack(images, 2)
         t = qs.transpose(1, 2) @ hqs
