@@ -1402,7 +1402,8 @@ def model_card(result: dict, name: str, group: str, n_models: int,
         "## Models", "",
         f"{n_models} {GROUP_LABEL[group]} models (seeds {', '.join(seeds)};"
         f" {epochs}training config `examples/eqm7/train.yaml` with overrides"
-        f" {model_overrides(cfg, group, '{seed}') or 'none'}), weights stored in float32."
+        f" {', '.join(f'`{o}`' for o in model_overrides(cfg, group, '{seed}')) or 'none'}),"
+        " weights stored in float32."
         " With several members the calculator and every command report the mean and the"
         " spread (`energy_std`, `forces_std`, `dipole_std`, ...) and warn when the spread is"
         " large.", "",

@@ -624,8 +624,11 @@ def _relax_once(model, structures, opts, bounds) -> list[RelaxResult]:
     results = _relax_coulomb(model, structures, opts, bounds)
     # a failed quasi-Newton relaxation (e.g. slid into a merged pair, off to a neighbouring
     # basin of a poorly trained model) is tried again with the exact-Hessian Newton method
-    # from the same start, so the default fails no more often than the exact method
-    retry = [k for k, r in enumerate(results) if r.failed]
+    # from the same start, so the default fails no more often than the exact method; a
+    # converged saddle goes on to the escape along its softest mode instead (the exact
+    # Newton method returns to the saddle, or worse)
+    retry = [k for k, r in enumerate(results) if r.failed and not (
+        opts.saddle_escapes > 0 and opts.check_curvature and _at_saddle(structures[k], r, opts))]
     if retry:
         sub_bounds = None if bounds is None else [bounds[k] for k in retry]
         again = _relax(model, [structures[k] for k in retry],
