@@ -1112,6 +1112,8 @@ def targets(result: dict) -> list[dict]:
 
 
 def data_summary(study: Study) -> dict:
+    from emlpack.data.dataset import training_domain
+
     data = study.shards()
     split = data.split_indices()
     mols = {k: len({data.structures[i].info.get("molecule_id") for i in v})
@@ -1121,7 +1123,8 @@ def data_summary(study: Study) -> dict:
             "by_split": {k: {"configurations": int(len(v)), "molecules": mols[k]}
                          for k, v in split.items()},
             "molecules_listed": len(data.molecules),
-            "hydrides": data.hydrides is not None, "failures": len(data.failures)}
+            "hydrides": data.hydrides is not None, "failures": len(data.failures),
+            "train_domain": training_domain([data.structures[i] for i in split["train"]])}
 
 
 def stage_table(study: Study, out_dir: Path | None = None) -> dict:
@@ -1311,6 +1314,7 @@ def stage_export(study: Study) -> Path:
     Into the package (``src/emlpack/pretrained/NAME``) only when the study's ``status`` is
     ``final`` (the full campaign data set); a preliminary ensemble goes to
     ``WORKDIR/pretrained/NAME`` so that no half-trained model ships by accident."""
+    from emlpack.data.dataset import training_domain
     from emlpack.pretrained import PRETRAINED_DIR, export_pretrained
 
     e = study.cfg.get("export", {}) or {}
@@ -1332,9 +1336,11 @@ def stage_export(study: Study) -> Path:
     except ValueError:
         pass
     card = model_card(results, name, group, len(models), results_md)
+    data = study.shards()
+    domain = training_domain([data.structures[i] for i in data.split_indices()["train"]])
     files = export_pretrained(models, folder, card,
                               notice=None if final else preliminary_notice(results, name, group),
-                              data_path=e.get("data_label"))
+                              data_path=e.get("data_label"), domain=domain)
     study.work["export"] += 1
     where = "the package" if final and not e.get("dir") else str(folder)
     study.log(f"export: {len(models)} {GROUP_LABEL[group]} models -> {folder} ({where};"
@@ -1443,11 +1449,14 @@ def model_card(result: dict, name: str, group: str, n_models: int,
         lines.append(f"MD (500 fs NVT at 300 K): {md['runs']} runs, {md['stable']} stable,"
                      f" {md['unstable']} unstable, {md['bonding_changed']} with bonding"
                      " changed.")
+    size = (d.get("train_domain") or {}).get("max_heavy_atoms")
+    largest = (f" Its training molecules have at most {size} heavy atoms (the data set's"
+               " target: up to 7); the calculator warns on a larger molecule." if size else "")
     lines += [
         "", "## Domain", "",
-        "Neutral closed-shell molecules of H, C, N and O with up to 7 heavy atoms, near their"
-        " equilibrium geometry (thermal distortions up to ~800 K) and in homogeneous fields up"
-        " to 0.01 au (0.51 V/Å). Other elements are refused (one line naming them); larger or"
+        "Neutral closed-shell molecules of H, C, N and O near their equilibrium geometry"
+        " (thermal distortions up to ~800 K) and in homogeneous fields up to 0.01 au (0.51"
+        f" V/Å).{largest} Other elements are refused (one line naming them); larger or"
         " charged molecules, crystals and reactive geometries are outside the training data:"
         " the calculator warns on a large ensemble spread and changed bonding, and a failed"
         " pair relaxation is an error naming the member.", "",

@@ -7,6 +7,8 @@ geometries of the same atoms and names every bond broken (stretched beyond
 were more than :data:`BROKEN_FACTOR` times their covalent sum apart). This is how emlpack tells
 an optimised, relaxed or simulated molecule that is no longer the input molecule (e.g. a C=O
 stretched from 1.21 to 1.9 Å, or an H that moved to another carbon).
+:func:`largest_molecule` counts the heavy atoms of the largest bonded molecule of a
+configuration: how a trained model's domain of molecule sizes is recorded and checked.
 """
 
 from __future__ import annotations
@@ -53,3 +55,21 @@ def bonding_changes(numbers, reference_positions, positions) -> list[str]:
     out += [f"bond {label(i, j)} formed" for i, j in sorted(new - ref)
             if d_ref[i, j] > BROKEN_FACTOR * sums[i, j]]
     return out
+
+
+def largest_molecule(numbers, positions) -> int:
+    """Heavy atoms (Z > 1) of the largest covalently bonded molecule among the atoms (Å
+    positions; bonds as :func:`bonds`): 4 for propanal (C3H6O), and for a dimer of propanal
+    and water too; 0 without heavy atoms."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    numbers = np.asarray(numbers, dtype=int)
+    heavy = numbers > 1
+    if not heavy.any():
+        return 0
+    n = len(numbers)
+    ij = np.array(sorted(bonds(numbers, positions)), dtype=int).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(ij)), (ij[:, 0], ij[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    return int(np.bincount(label[heavy]).max())

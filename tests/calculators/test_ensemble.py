@@ -250,3 +250,34 @@ def test_a_models_notice_is_in_every_result_and_logged_once(checkpoints, tmp_pat
     atoms.write(xyz)
     assert main(["polarizability", str(root / "toy"), str(xyz), "-o", str(out), "--quiet"]) == 0
     assert notice in json.loads(out.read_text())["warnings"]
+
+
+def test_a_molecule_larger_than_the_training_molecules_is_warned_once(checkpoints, tmp_path,
+                                                                      caplog):
+    """The export records the largest training molecule (the checkpoint's own value wins over
+    ``domain``); a larger molecule is warned about at every call, logged once."""
+    import logging
+
+    from emlpack.nn.checkpoint import read_checkpoint
+
+    _, paths = checkpoints
+    root = tmp_path / "pretrained"
+    export_pretrained(paths, root / "small", "# small\n", domain={"max_heavy_atoms": 2})
+    assert load_pretrained("small", root=root).max_heavy_atoms == 2
+    atoms = structure_to_atoms(_ethanol())  # 3 heavy atoms
+    atoms.calc = EMLPCalculator(load_pretrained("small", root=root), relax_pairs=False)
+    with caplog.at_level(logging.WARNING):
+        for shift in (0.0, 0.01):
+            atoms.positions[0, 0] += shift
+            atoms.get_potential_energy()
+            assert any("3 heavy atoms" in w and "at most 2" in w for w in atoms.calc.warnings)
+    assert sum("3 heavy atoms" in r.getMessage() for r in caplog.records) == 1
+    # recorded in the checkpoint: kept over the export's domain
+    big = root / "big"
+    export_pretrained(paths, big, "# big\n", domain={"max_heavy_atoms": 7})
+    export_pretrained(sorted(big.glob("model-*.pt")), root / "again", "# again\n",
+                      domain={"max_heavy_atoms": 2})
+    assert read_checkpoint(root / "again" / "model-0.pt")["metadata"]["max_heavy_atoms"] == 7
+    atoms.calc = EMLPCalculator(load_pretrained("again", root=root), relax_pairs=False)
+    atoms.get_potential_energy()
+    assert atoms.calc.warnings == []

@@ -157,6 +157,10 @@ def test_export_ships_the_augmented_ensemble_with_its_card(study_run):
     # and every calculation with it says so, with the measured error
     assert all(m.notice and "preliminary" in m.notice and f"{1000 * mae:.0f} meV/Å" in m.notice
                for m in ensemble.members)
+    # the largest training molecule: in the card and in every member (the calculator's check)
+    size = result["data"]["train_domain"]["max_heavy_atoms"]
+    assert size >= 1 and ensemble.max_heavy_atoms == size
+    assert f"training molecules have at most {size} heavy atoms" in card
 
 
 def test_dft_plan_finishes_the_figure_molecules_then_polarizabilities_then_hessians():

@@ -16,6 +16,8 @@ import pytest
 import torch
 import yaml
 
+from emlpack.bonding import largest_molecule
+from emlpack.data.dataset import load_data
 from emlpack.io import read_structures, write_structures
 from emlpack.nn.checkpoint import load_model, read_checkpoint
 from emlpack.train.config import load_config
@@ -88,6 +90,12 @@ def test_training_reduces_the_loss_and_writes_the_run(tmp_path, small_data):
     assert model.config.n_features == 16
     meta = read_checkpoint(run / "last.pt")["metadata"]
     assert meta["training"]["epoch"] == 4 and meta["reference"]["kind"] == "hydrides"
+    # the training domain the calculator checks: elements and the largest molecule
+    structures, _ = load_data(small_data)
+    seen = [structures[i] for i in meta["split"]["train"]]
+    assert meta["elements"] == sorted({int(z) for s in seen for z in s.numbers})
+    assert meta["max_heavy_atoms"] == max(largest_molecule(s.numbers, s.positions)
+                                          for s in seen) >= 1
 
 
 def test_resume_after_kill_minus_9_is_exact(tmp_path, small_data):

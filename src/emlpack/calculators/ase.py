@@ -29,11 +29,13 @@ member's) and ``calc.relax_results``. A failed relaxation raises
 :class:`ase.calculators.calculator.CalculationFailed` naming the reason.
 
 Warnings (``calc.warnings``, also logged) say when a result should not be trusted: an element
-the models were not trained on, a spread across members above ``energy_spread_warning``
-(eV/atom) or ``force_spread_warning`` (eV/Å), or a molecule whose bonding changed since the
-first geometry this calculator saw (:func:`emlpack.bonding.bonding_changes`); and a model's
-own notice from its checkpoint (a preliminary pretrained ensemble's measured errors), in every
-result's warnings and logged once.
+the models were not trained on, a molecule with more heavy atoms than the largest training
+molecule (:func:`emlpack.bonding.largest_molecule`, recorded in the checkpoints), a spread
+across members above ``energy_spread_warning`` (eV/atom) or ``force_spread_warning`` (eV/Å),
+or a molecule whose bonding changed since the first geometry this calculator saw
+(:func:`emlpack.bonding.bonding_changes`); and a model's own notice from its checkpoint (a
+preliminary pretrained ensemble's measured errors). The notices and the element and size
+warnings are in every result's warnings and logged once per calculator.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ from ase import Atoms
 from ase.calculators.calculator import CalculationFailed, Calculator, all_changes
 from ase.stress import full_3x3_to_voigt_6_stress
 
-from emlpack.bonding import bonding_changes
+from emlpack.bonding import bonding_changes, largest_molecule
 from emlpack.calculators.ensemble import ModelEnsemble, as_ensemble
 from emlpack.geometry import carry_pairs
 from emlpack.io.ase_convert import FIELD_KEY, PAIRS_KEY, atoms_to_structure
@@ -130,7 +132,7 @@ class EMLPCalculator(Calculator):
         self.relax_result: RelaxResult | None = None
         self.relax_results: list[RelaxResult] = []
         self.warnings: list[str] = []
-        self._notices_logged = False
+        self._logged_once: set[str] = set()  # notices and domain warnings: logged once
         self._last_field: np.ndarray | None = None
         self._given_pairs: np.ndarray | None = None
         self._warm: tuple | None = None  # (numbers, cores, cell or None, pairs per member)
@@ -216,11 +218,8 @@ class EMLPCalculator(Calculator):
         super().calculate(atoms, properties or ["energy"], system_changes)
         atoms = self.atoms
         field = self._field_of(atoms)
-        warnings: list[str] = list(self.ensemble.notices)  # logged once, at the first call
-        unknown = self.ensemble.unknown_elements(atoms.numbers)
-        if unknown:
-            warnings.append(f"element(s) Z={unknown} are outside the models' training set"
-                            f" (Z={sorted(self.ensemble.elements)})")
+        warnings = list(self.ensemble.notices) + self._domain_warnings(atoms)
+        once = set(warnings)  # the same at every call: logged at the first
         starts = self._start_pairs(atoms)
         energies, relative, raw, outs, pairs_of, dipoles = [], [], [], [], [], []
         self.relax_results = []
@@ -285,14 +284,31 @@ class EMLPCalculator(Calculator):
         warnings += self._spread_warnings(len(atoms))
         warnings += self._bonding_warnings(atoms)
         for text in warnings:
-            if text in self.ensemble.notices and self._notices_logged:
+            if text in self._logged_once:
                 continue
             log.warning("%s: %s", atoms.get_chemical_formula(), text)
-        self._notices_logged = True
+            if text in once:
+                self._logged_once.add(text)
         self.warnings = warnings
         self._last_field = field.copy()
         self._warm = (atoms.numbers.copy(), atoms.positions.copy(),
                       atoms.cell[:].copy() if np.any(atoms.pbc) else None, pairs_of)
+
+    def _domain_warnings(self, atoms: Atoms) -> list[str]:
+        """Elements outside the training set, and a molecule larger than its largest."""
+        out = []
+        unknown = self.ensemble.unknown_elements(atoms.numbers)
+        if unknown:
+            out.append(f"element(s) Z={unknown} are outside the models' training set"
+                       f" (Z={sorted(self.ensemble.elements)})")
+        limit = self.ensemble.max_heavy_atoms
+        if limit is not None and not np.any(atoms.pbc):
+            size = largest_molecule(atoms.numbers, atoms.positions)
+            if size > limit:
+                out.append(f"a molecule of {size} heavy atoms: the models' training molecules"
+                           f" have at most {limit}, so expect larger errors than measured on"
+                           " them")
+        return out
 
     def _spread_warnings(self, n_atoms: int) -> list[str]:
         if len(self.ensemble) < 2:

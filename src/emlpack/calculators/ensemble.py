@@ -19,7 +19,7 @@ several, properties are averaged and their spread across members is the uncertai
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +50,8 @@ class ModelMember:
         source: where it was loaded from.
         notice: what every calculation with this model should say, from its metadata (e.g. a
             preliminary pretrained model's measured errors), or None.
+        max_heavy_atoms: heavy atoms of the largest molecule in the training set
+            (:func:`emlpack.data.dataset.training_domain`), or None when unknown.
     """
 
     model: EMLP
@@ -57,6 +59,7 @@ class ModelMember:
     elements: tuple[int, ...] | None = None
     source: str = "<memory>"
     notice: str | None = None
+    max_heavy_atoms: int | None = None
     _hydride_delta: np.ndarray | None = field(default=None, repr=False)
 
     def hydride_delta(self) -> np.ndarray | None:
@@ -87,15 +90,18 @@ class ModelMember:
 
 
 def load_member(path: str | Path, dtype: torch.dtype = torch.float64) -> ModelMember:
-    """A checkpoint as a :class:`ModelMember` (reference and elements from its metadata)."""
+    """A checkpoint as a :class:`ModelMember` (reference, elements and largest training
+    molecule from its metadata)."""
     meta = read_checkpoint(path).get("metadata", {}) or {}
     model = load_model(path, dtype).eval()
     reference = reference_from_metadata(meta["reference"]) if "reference" in meta else None
     elements = meta.get("elements")
     if elements is None and isinstance(reference, HydrideReference):
         elements = (1, 6, 7, 8)
+    size = meta.get("max_heavy_atoms")
     return ModelMember(model, reference, None if elements is None else tuple(map(int, elements)),
-                       str(path), meta.get("notice") or None)
+                       str(path), meta.get("notice") or None,
+                       None if size is None else int(size))
 
 
 class ModelEnsemble:
@@ -133,6 +139,13 @@ class ModelEnsemble:
         """The members' notices (e.g. a preliminary model's measured errors), each once."""
         return list(dict.fromkeys(m.notice for m in self.members if m.notice))
 
+    @property
+    def max_heavy_atoms(self) -> int | None:
+        """The largest training molecule (heavy atoms) that every member has seen, or None
+        when no member records it."""
+        sizes = [m.max_heavy_atoms for m in self.members if m.max_heavy_atoms is not None]
+        return min(sizes) if sizes else None
+
     def unknown_elements(self, numbers) -> list[int]:
         """Atomic numbers in ``numbers`` outside the training set (empty when unknown)."""
         known = self.elements
@@ -143,8 +156,7 @@ class ModelEnsemble:
     def to(self, dtype: torch.dtype) -> ModelEnsemble:
         """A copy with every model in ``dtype`` and evaluation mode (the members given are not
         changed)."""
-        out = [ModelMember(for_evaluation(m.model, dtype), m.reference, m.elements, m.source,
-                           m.notice, m._hydride_delta) for m in self.members]
+        out = [replace(m, model=for_evaluation(m.model, dtype)) for m in self.members]
         return ModelEnsemble(out, self.name)
 
 

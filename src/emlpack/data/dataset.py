@@ -46,6 +46,18 @@ def molecule_id(s: Structure) -> str:
     return str(mid) if mid not in (None, "") else formula(s.numbers)
 
 
+def training_domain(structures: Sequence[Structure]) -> dict:
+    """What a model trained on ``structures`` has seen, as recorded in its checkpoint:
+    ``elements`` (sorted atomic numbers of the cores) and ``max_heavy_atoms`` (heavy atoms of
+    the largest bonded molecule of a molecular configuration, :func:`emlpack.bonding.
+    largest_molecule`; None without molecules). The calculator warns outside either."""
+    from emlpack.bonding import largest_molecule
+
+    elements = sorted({int(z) for s in structures for z in s.numbers})
+    sizes = [largest_molecule(s.numbers, s.positions) for s in structures if not s.pbc]
+    return {"elements": elements, "max_heavy_atoms": max(sizes) if sizes else None}
+
+
 class DataError(EmlpackError, ValueError):
     """Unusable training data; the message names the file."""
 

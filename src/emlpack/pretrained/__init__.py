@@ -1,8 +1,8 @@
 """Pretrained eMLP ensembles shipped inside the package, loaded by name.
 
 Each model is a folder ``emlpack/pretrained/NAME/`` with ``model-K.pt`` checkpoints (float32
-weights, the training reference and elements in their metadata) and ``card.md`` (level of
-theory, data, measured errors on unseen molecules, domain, citation)::
+weights; the training reference, elements and largest molecule in their metadata) and
+``card.md`` (level of theory, data, measured errors on unseen molecules, domain, citation)::
 
     from emlpack import load_pretrained
     ensemble = load_pretrained("mini-eqm7")          # a ModelEnsemble
@@ -84,13 +84,15 @@ def model_card(name: str, root: Path | None = None) -> str:
 
 def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: str,
                       dtype: torch.dtype | None = None, notice: str | None = None,
-                      data_path: str | None = None) -> list[Path]:
+                      data_path: str | None = None, domain: dict | None = None) -> list[Path]:
     """Write trained checkpoints as a shippable pretrained model: ``folder/model-K.pt`` with
     weights in ``dtype`` (default float32), only the metadata a user needs (reference,
     elements, model config, data path and split), and ``folder/card.md``. ``notice``: a line
     every calculation with these models reports among its warnings (e.g. that the ensemble is
     preliminary, with its measured errors); ``data_path``: how the metadata names the training
-    data (default: the checkpoint's own, which may be a local path). The folder's earlier
+    data (default: the checkpoint's own, which may be a local path); ``domain``: the
+    training domain (:func:`emlpack.data.dataset.training_domain`) for checkpoints whose
+    metadata lacks it (written before it was recorded). The folder's earlier
     members are replaced: a ``model-K.pt`` beyond the new ensemble's size is removed. Returns
     the written files."""
     import torch
@@ -101,7 +103,7 @@ def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: s
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    keep = ("reference", "elements", "data_path", "split", "epoch", "val")
+    keep = ("reference", "elements", "max_heavy_atoms", "data_path", "split", "epoch", "val")
     written = []
     for k, path in enumerate(checkpoints):
         meta = read_checkpoint(path).get("metadata", {}) or {}
@@ -110,6 +112,8 @@ def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: s
                                   " checkpoint written by `emlp train`)")
         model = load_model(path, dtype)
         out = {key: meta[key] for key in keep if key in meta}
+        for key, value in (domain or {}).items():
+            out.setdefault(key, value)
         out["source_checkpoint"] = Path(path).name
         if notice:
             out["notice"] = notice

@@ -50,7 +50,14 @@ import torch.distributed as dist
 from emlpack._files import atomic_path, atomic_write, try_lock, write_text_atomic
 from emlpack.commits import git_commit
 from emlpack.data.augment import AugmentationConfig
-from emlpack.data.dataset import Collater, load_data, make_batch, molecule_id, split_indices
+from emlpack.data.dataset import (
+    Collater,
+    load_data,
+    make_batch,
+    molecule_id,
+    split_indices,
+    training_domain,
+)
 from emlpack.data.references import (
     ConstantReference,
     HydrideReference,
@@ -153,6 +160,7 @@ class Trainer:
         self.best_epoch = -1
         self.bad_epochs = 0
         self._val_batches = None
+        self._training_domain: dict | None = None
 
     # ------------------------------------------------------------------ data
     def _epoch_batches(self, epoch: int) -> list[np.ndarray]:
@@ -194,9 +202,14 @@ class Trainer:
                 "data_path": str(self.cfg["data"]["path"]),
                 "n_structures": len(self.structures),
                 "split": {k: v.tolist() for k, v in self.split.items()},
-                "elements": sorted({int(z) for i in self.split["train"]
-                                    for z in self.structures[i].numbers}),
-                "epoch": self.epoch, **extra}
+                **self._domain(), "epoch": self.epoch, **extra}
+
+    def _domain(self) -> dict:
+        """Elements and largest molecule of the training split (computed once)."""
+        if self._training_domain is None:
+            self._training_domain = training_domain(
+                [self.structures[i] for i in self.split["train"]])
+        return self._training_domain
 
     def training_state(self) -> dict:
         return {
