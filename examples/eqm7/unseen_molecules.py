@@ -10,7 +10,9 @@ learning curve's ``runs/eqm7-lc/data/shards-79``); DATA the grown folder (defaul
 ``datasets/mini-eqm7``). The unseen configurations are DATA's train and validation
 configurations whose molecule is absent from TRAINED_ON (test molecules are left to the
 study). Static and dynamic errors as in Tables 2 and 3 (``emlpack.train.evaluate.evaluate``;
-eV, Å, Debye), with the intrinsic variability; printed and written to ``--json``.
+eV, Å, Debye), with the intrinsic variability, and the static errors by molecule size (heavy
+atoms of the molecule in ``molecules.csv``; dimer configurations apart); printed and written
+to ``--json``.
 """
 
 from __future__ import annotations
@@ -23,8 +25,8 @@ import torch
 
 from emlpack._files import write_json_atomic
 from emlpack.data.dataset import molecule_id
-from emlpack.data.shards import read_shards
-from emlpack.train.evaluate import evaluate, load_for_evaluation
+from emlpack.data.shards import read_molecule_table, read_shards
+from emlpack.train.evaluate import evaluate, load_for_evaluation, static_errors
 
 
 def unseen(trained_on: str | Path, data: str | Path) -> list:
@@ -34,6 +36,25 @@ def unseen(trained_on: str | Path, data: str | Path) -> list:
     split = grown.split_indices()
     return [grown.structures[i] for key in ("train", "val") for i in split[key]
             if molecule_id(grown.structures[i]) not in seen]
+
+
+def by_size(model, reference, structures, data: str | Path) -> list[dict]:
+    """Static energy and core-force MAE (eV/atom, eV/Å) per molecule size (heavy atoms) and
+    kind (monomer or dimer configuration)."""
+    heavy = {row["name"]: row["n_heavy"] for row in read_molecule_table(data)}
+    groups: dict[tuple[int, bool], list] = {}
+    for s in structures:
+        key = (heavy[molecule_id(s)], str(s.info.get("kind", "")).endswith("dimer"))
+        groups.setdefault(key, []).append(s)
+    out = []
+    for (n_heavy, dimer), members in sorted(groups.items()):
+        a = static_errors(model, reference, members)
+        out.append({"heavy_atoms": n_heavy, "dimers": dimer,
+                    "molecules": len({molecule_id(s) for s in members}),
+                    "configurations": len(members),
+                    "energy_mae": float(abs(a["e_pred"] - a["e_true"]).mean()),
+                    "forces_mae": float(abs(a["f_pred"] - a["f_true"]).mean())})
+    return out
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -60,6 +81,7 @@ def main(argv: list[str] | None = None) -> dict:
         "intrinsic": metrics["intrinsic"],
         "dynamic_mae": {k: dy[k]["mae"] for k in ("energy", "forces", "dipole")},
         "dynamic_error_rate": dy["error_rate"], "dynamic_failed": dy["n_failed"],
+        "static_by_size": by_size(model, reference, structures, args.data),
         "units": "eV/atom (energy), eV/Å (forces), Debye (dipole)",
     }
     print(json.dumps({k: v for k, v in summary.items() if k != "molecules"}, indent=1))

@@ -34,3 +34,9 @@ def test_unseen_molecules_are_the_grown_shards_training_molecules(tmp_path):
     assert summary["molecules"] == names
     assert all(np.isfinite(v) for v in summary["static_mae"].values())
     assert 0.0 <= summary["dynamic_error_rate"] <= 1.0
+    # by size: every unseen configuration in one group, keyed by its molecule's heavy atoms
+    groups = summary["static_by_size"]
+    assert sum(g["configurations"] for g in groups) == summary["n_configurations"]
+    sizes = {n: heavy for n, _, heavy, _ in MOLECULES}
+    assert {g["heavy_atoms"] for g in groups} == {sizes[n] for n in names}
+    assert all(np.isfinite(g["forces_mae"]) and g["forces_mae"] > 0 for g in groups)
