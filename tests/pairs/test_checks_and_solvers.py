@@ -132,3 +132,25 @@ def test_corrected_pairs_meet_fmax_when_evaluated(water):
         out = model.evaluate(moved.copy(pairs=r.pairs), dtype=torch.float64)
         worst = max(worst, float(np.abs(out["pair_forces"]).max()))
     assert worst < fmax, worst
+
+
+def test_a_guess_restart_without_a_guess_is_a_failed_attempt(water, monkeypatch):
+    """A "guess" restart whose guess fails (e.g. a distorted MD frame with neither a Boys nor
+    a Lewis structure) is CalculationFailed, which the MD watchdog counts as a failed attempt,
+    not an exception that ends the run."""
+    from ase.calculators.calculator import CalculationFailed
+
+    import emlpack.pairs.solvers as solvers
+    from emlpack.qm.pyscf_labeler import LabelingError
+
+    model, s = water
+    solver = WarmStartSolver(fmax=1e-7)
+    solver.relax(model, s)
+
+    def no_guess(*args, **kwargs):
+        raise LabelingError("guess_pairs: PySCF Foster-Boys guess failed: no core centre")
+
+    monkeypatch.setattr(solvers, "guess_matched", no_guess)
+    solver.restart = "guess"
+    with pytest.raises(CalculationFailed, match="no fresh electron-pair guess.*Boys"):
+        solver.relax(model, s)

@@ -69,3 +69,24 @@ def test_boys_guess_is_close_to_the_dft_centres():
     s = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), "0")[0]
     pairs = guess_pairs(_bare(s.copy(field=np.zeros(3))), "boys")
     assert _matched_distance(pairs, s.pairs, s) < 0.1
+
+
+def test_a_failed_boys_guess_falls_back_to_lewis(monkeypatch, caplog):
+    """``method="auto"``: when the Foster-Boys guess fails, the Lewis guess, with a warning."""
+    import logging
+
+    import emlpack.pairs.guess as guess
+    from emlpack.qm.pyscf_labeler import LabelingError
+
+    s = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), index=400)[0]
+    atoms = _bare(s)
+
+    def failing(*args, **kwargs):
+        raise LabelingError("guess_pairs: PySCF Foster-Boys guess failed: no core centre")
+
+    monkeypatch.setattr(guess, "boys_pairs", failing)
+    monkeypatch.setattr(guess, "_have_pyscf", lambda: True)
+    with caplog.at_level(logging.WARNING):
+        pairs = guess_pairs(atoms)
+    np.testing.assert_array_equal(pairs, lewis_pairs(atoms))
+    assert any("Lewis" in r.getMessage() and "Boys" in r.getMessage() for r in caplog.records)

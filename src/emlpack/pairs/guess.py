@@ -3,7 +3,9 @@
 * ``method="boys"`` (molecules; the default for them when PySCF is installed): a quick
   Hartree-Fock calculation at a small basis (``level``, default HF/STO-3G, ~1 s for 10 atoms) and
   Foster-Boys localization via :class:`emlpack.qm.pyscf_labeler.PySCFLabeler`; the valence
-  centres are returned.
+  centres are returned. With ``method="auto"`` a failed Boys guess (e.g. a strongly distorted
+  MD frame whose localized core orbital is off its nucleus) falls back to the Lewis guess,
+  with a logged warning.
 * ``method="lewis"`` (crystals, or without PySCF): a Lewis structure. Bonds from covalent radii
   (minimum image under PBC), bond orders raised greedily until every atom reaches its usual
   valence (H 1, B 3, C 4, N 3, O 2, F 1, Si 4, P 3, S 2, Cl 1), lone pairs from valence counting
@@ -19,11 +21,15 @@ in the right basin. No torch here.
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 from ase import Atoms
 from ase.data import covalent_radii
 
 from emlpack.structure import core_charges
+
+log = logging.getLogger(__name__)
 
 #: usual number of covalent bonds (sum of bond orders) per element
 VALENCE = {1: 1, 3: 1, 4: 2, 5: 3, 6: 4, 7: 3, 8: 2, 9: 1, 11: 1, 12: 2, 13: 3, 14: 4, 15: 3,
@@ -51,8 +57,16 @@ def guess_pairs(atoms: Atoms, method: str = "auto", level: str = "hf/sto-3g/nodf
     if charge is None:
         charge = float(atoms.info.get("charge", 0.0))
     periodic = bool(np.any(atoms.pbc))
+    if method == "auto" and not periodic and _have_pyscf():
+        from emlpack.qm.pyscf_labeler import LabelingError
+
+        try:
+            return boys_pairs(atoms.numbers, atoms.positions, charge, level)
+        except LabelingError as exc:
+            log.warning("%s; using the Lewis-structure guess", exc)
+            return lewis_pairs(atoms, charge)
     if method == "auto":
-        method = "lewis" if periodic or not _have_pyscf() else "boys"
+        method = "lewis"
     if method == "boys":
         if periodic:
             raise ValueError("guess_pairs: Foster-Boys guess is for molecules; use 'lewis'")

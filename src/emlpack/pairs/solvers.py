@@ -29,7 +29,9 @@ The warm-start solvers keep their state (:meth:`WarmStartSolver.state`,
 one-shot ``restart`` (``"rigid"``: the last relaxed pairs carried with their cores,
 :func:`emlpack.geometry.carry_pairs`; ``"guess"``: :func:`emlpack.pairs.guess.guess_matched`)
 and ``want_curvature`` (smallest exact pair-Hessian eigenvalue at the result) from the
-driver's watchdog policy.
+driver's watchdog policy; a ``"guess"`` restart with no guess to give (neither Foster-Boys nor
+a Lewis structure at these cores) raises :class:`ase.calculators.calculator.CalculationFailed`,
+a failed attempt for the watchdog like a failed relaxation.
 A fresh start (first call or a restart) is relaxed by :func:`relax_pairs` first.
 """
 
@@ -44,9 +46,11 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 import torch
+from ase.calculators.calculator import CalculationFailed
 from scipy.linalg.lapack import dpotrf as _potrf
 from scipy.linalg.lapack import dpotrs as _potrs
 
+from emlpack.errors import EmlpackError
 from emlpack.geometry import carry_pairs, nearest_cores
 from emlpack.nn.potential import EMLP
 from emlpack.pairs.checks import check_pairs
@@ -239,8 +243,11 @@ class WarmStartSolver:
         if restart == "rigid":
             x0 = self.rigid(structure)
         elif restart == "guess":
-            x0 = guess_matched(structure.numbers, cores, self.rigid(structure),
-                               structure.charge)
+            try:
+                x0 = guess_matched(structure.numbers, cores, self.rigid(structure),
+                                   structure.charge)
+            except (EmlpackError, ValueError) as exc:  # no Boys and no Lewis structure here
+                raise CalculationFailed(f"no fresh electron-pair guess: {exc}") from exc
         elif not self.history:
             x0 = structure.pairs.copy()
         else:
