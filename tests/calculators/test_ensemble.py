@@ -272,6 +272,18 @@ def test_a_molecule_larger_than_the_training_molecules_is_warned_once(checkpoint
             atoms.get_potential_energy()
             assert any("3 heavy atoms" in w and "at most 2" in w for w in atoms.calc.warnings)
     assert sum("3 heavy atoms" in r.getMessage() for r in caplog.records) == 1
+    # the property commands say so too, in their JSON
+    import json
+
+    from emlpack.cli import main
+
+    xyz, out = tmp_path / "ethanol.xyz", tmp_path / "pol.json"
+    plain = atoms.copy()
+    plain.calc = None
+    plain.write(xyz)
+    assert main(["polarizability", str(root / "small"), str(xyz), "-o", str(out),
+                 "--quiet"]) == 0
+    assert any("3 heavy atoms" in w for w in json.loads(out.read_text())["warnings"])
     # recorded in the checkpoint: kept over the export's domain
     big = root / "big"
     export_pretrained(paths, big, "# big\n", domain={"max_heavy_atoms": 7})

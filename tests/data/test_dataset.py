@@ -89,3 +89,27 @@ def test_store_adapter_separates_hydrides(tmp_path, eqm7):
     np.testing.assert_allclose(hyd["energies"], energies)
     assert [len(s.numbers) for s in hyd["structures"]] == [2, 5, 4, 3]
     np.testing.assert_allclose(data[2].forces, eqm7[2].forces)
+
+
+def test_training_domain_counts_a_molecule_by_its_smallest_configuration():
+    """A dimer configuration whose partner came within bonding distance does not make its
+    molecule larger; another molecule of that size does."""
+    from ase.build import molecule
+
+    from emlpack.data.dataset import training_domain
+    from emlpack.structure import Structure, core_charges
+
+    ethanol, water = molecule("CH3CH2OH"), molecule("H2O")
+    c = int(np.flatnonzero(ethanol.numbers == 6)[0])
+    water.positions += ethanol.positions[c] + np.array([0.0, 0.0, 1.5]) - water.positions[0]
+    touching = ethanol + water  # the water O 1.5 Å from a carbon: one fragment of 4 heavy atoms
+
+    def config(atoms, name):  # pairs on the first core (their positions do not matter here)
+        n_pairs = int(core_charges(atoms.numbers).sum()) // 2
+        return Structure(atoms.numbers, atoms.positions, np.repeat(atoms.positions[:1], n_pairs, 0),
+                         info={"molecule_id": name})
+
+    same = [config(ethanol, "ethanol"), config(touching, "ethanol")]
+    assert training_domain(same) == {"elements": [1, 6, 8], "max_heavy_atoms": 3}
+    other = [config(ethanol, "ethanol"), config(touching, "ethanol-water")]
+    assert training_domain(other)["max_heavy_atoms"] == 4

@@ -50,7 +50,7 @@ from ase import Atoms
 from ase.calculators.calculator import CalculationFailed, Calculator, all_changes
 from ase.stress import full_3x3_to_voigt_6_stress
 
-from emlpack.bonding import bonding_changes, largest_molecule
+from emlpack.bonding import bonding_changes
 from emlpack.calculators.ensemble import ModelEnsemble, as_ensemble
 from emlpack.geometry import carry_pairs
 from emlpack.io.ase_convert import FIELD_KEY, PAIRS_KEY, atoms_to_structure
@@ -218,7 +218,8 @@ class EMLPCalculator(Calculator):
         super().calculate(atoms, properties or ["energy"], system_changes)
         atoms = self.atoms
         field = self._field_of(atoms)
-        warnings = list(self.ensemble.notices) + self._domain_warnings(atoms)
+        warnings = list(self.ensemble.notices) + self.ensemble.domain_warnings(
+            atoms.numbers, atoms.positions, periodic=bool(np.any(atoms.pbc)))
         once = set(warnings)  # the same at every call: logged at the first
         starts = self._start_pairs(atoms)
         energies, relative, raw, outs, pairs_of, dipoles = [], [], [], [], [], []
@@ -293,22 +294,6 @@ class EMLPCalculator(Calculator):
         self._last_field = field.copy()
         self._warm = (atoms.numbers.copy(), atoms.positions.copy(),
                       atoms.cell[:].copy() if np.any(atoms.pbc) else None, pairs_of)
-
-    def _domain_warnings(self, atoms: Atoms) -> list[str]:
-        """Elements outside the training set, and a molecule larger than its largest."""
-        out = []
-        unknown = self.ensemble.unknown_elements(atoms.numbers)
-        if unknown:
-            out.append(f"element(s) Z={unknown} are outside the models' training set"
-                       f" (Z={sorted(self.ensemble.elements)})")
-        limit = self.ensemble.max_heavy_atoms
-        if limit is not None and not np.any(atoms.pbc):
-            size = largest_molecule(atoms.numbers, atoms.positions)
-            if size > limit:
-                out.append(f"a molecule of {size} heavy atoms: the models' training molecules"
-                           f" have at most {limit}, so expect larger errors than measured on"
-                           " them")
-        return out
 
     def _spread_warnings(self, n_atoms: int) -> list[str]:
         if len(self.ensemble) < 2:

@@ -146,6 +146,27 @@ class ModelEnsemble:
         sizes = [m.max_heavy_atoms for m in self.members if m.max_heavy_atoms is not None]
         return min(sizes) if sizes else None
 
+    def domain_warnings(self, numbers, positions, periodic: bool = False) -> list[str]:
+        """Warnings for a structure (atomic numbers, core positions in Å) outside what the
+        members were trained on: elements outside the training set, and a molecule with more
+        heavy atoms than the largest training molecule (:func:`emlpack.bonding.
+        largest_molecule`; molecules only). Empty when inside, or when unrecorded."""
+        from emlpack.bonding import largest_molecule
+
+        out = []
+        unknown = self.unknown_elements(numbers)
+        if unknown:
+            out.append(f"element(s) Z={unknown} are outside the models' training set"
+                       f" (Z={sorted(self.elements)})")
+        limit = self.max_heavy_atoms
+        if limit is not None and not periodic:
+            size = largest_molecule(numbers, positions)
+            if size > limit:
+                out.append(f"a molecule of {size} heavy atoms: the models' training molecules"
+                           f" have at most {limit}, so expect larger errors than measured on"
+                           " them")
+        return out
+
     def unknown_elements(self, numbers) -> list[int]:
         """Atomic numbers in ``numbers`` outside the training set (empty when unknown)."""
         known = self.elements

@@ -146,6 +146,8 @@ class Prepared:
 def prepare(args, periodic: bool | None, command: str) -> Prepared:
     """Cheap checks (arguments, model files, structure, field), then pair guess and relaxation
     (by every member of an ensemble)."""
+    from emlpack.calculators.ensemble import ModelEnsemble
+
     log = Log(args.quiet)
     positive(args.fmax, "--fmax")
     positive(args.max_iterations, "--max-iterations")
@@ -153,8 +155,10 @@ def prepare(args, periodic: bool | None, command: str) -> Prepared:
     members = load_members(args.model)
     s, where = read_structure(args, members[0].model, log, periodic=periodic, command=command)
     s, field_info = apply_field(s, args, where, log)
-    # what the models' files ask every result to say (e.g. a preliminary pretrained ensemble)
-    warnings: list[str] = list(dict.fromkeys(m.notice for m in members if m.notice))
+    # what the models' files ask every result to say (e.g. a preliminary pretrained ensemble),
+    # and a structure outside their training domain (e.g. a larger molecule)
+    ensemble = ModelEnsemble(members)
+    warnings = ensemble.notices + ensemble.domain_warnings(s.numbers, s.positions, s.pbc)
     structures, infos = [], []
     for k, member in enumerate(members):
         if len(members) > 1:
