@@ -157,6 +157,13 @@ class Study:
             self._shards = read_shards(self.data)
         return self._shards
 
+    def train_domain(self) -> dict:
+        """Elements and largest molecule of the training split (what the models saw)."""
+        from emlpack.data.dataset import training_domain
+
+        data = self.shards()
+        return training_domain([data.structures[i] for i in data.split_indices()["train"]])
+
     def molecules(self) -> list[dict]:
         from emlpack.data.shards import read_molecule_table
 
@@ -1112,8 +1119,6 @@ def targets(result: dict) -> list[dict]:
 
 
 def data_summary(study: Study) -> dict:
-    from emlpack.data.dataset import training_domain
-
     data = study.shards()
     split = data.split_indices()
     mols = {k: len({data.structures[i].info.get("molecule_id") for i in v})
@@ -1124,7 +1129,7 @@ def data_summary(study: Study) -> dict:
                          for k, v in split.items()},
             "molecules_listed": len(data.molecules),
             "hydrides": data.hydrides is not None, "failures": len(data.failures),
-            "train_domain": training_domain([data.structures[i] for i in split["train"]])}
+            "train_domain": study.train_domain()}
 
 
 def stage_table(study: Study, out_dir: Path | None = None) -> dict:
@@ -1314,7 +1319,6 @@ def stage_export(study: Study) -> Path:
     Into the package (``src/emlpack/pretrained/NAME``) only when the study's ``status`` is
     ``final`` (the full campaign data set); a preliminary ensemble goes to
     ``WORKDIR/pretrained/NAME`` so that no half-trained model ships by accident."""
-    from emlpack.data.dataset import training_domain
     from emlpack.pretrained import PRETRAINED_DIR, export_pretrained
 
     e = study.cfg.get("export", {}) or {}
@@ -1336,11 +1340,9 @@ def stage_export(study: Study) -> Path:
     except ValueError:
         pass
     card = model_card(results, name, group, len(models), results_md)
-    data = study.shards()
-    domain = training_domain([data.structures[i] for i in data.split_indices()["train"]])
     files = export_pretrained(models, folder, card,
                               notice=None if final else preliminary_notice(results, name, group),
-                              data_path=e.get("data_label"), domain=domain)
+                              data_path=e.get("data_label"), domain=study.train_domain())
     study.work["export"] += 1
     where = "the package" if final and not e.get("dir") else str(folder)
     study.log(f"export: {len(models)} {GROUP_LABEL[group]} models -> {folder} ({where};"
