@@ -173,6 +173,51 @@ def test_bond_rotation_steps():
     assert torch.equal(straight, x + tangential)
 
 
+def test_collective_rotation_turns_a_bonds_pairs_together():
+    """The probe step turns every pair of a group about one bond by the same angle in the
+    same sense, whichever of the two cores each pair is nearer (its own axis then points the
+    other way); a lone pair about its bond and groups below ``min_pairs`` stay."""
+    from emlpack.structure import Structure
+
+    cores = np.array([[0.0, 0.0, 0.0], [1.2, 0.0, 0.0], [5.0, 0.0, 0.0], [6.1, 0.0, 0.0]])
+    angles = np.deg2rad([10.0, 130.0, 250.0])
+    ring = [[x, 0.5 * np.cos(a), 0.5 * np.sin(a)]
+            for x, a in zip((0.55, 0.65, 0.58), angles, strict=True)]
+    # one pair about the second bond, one on its axis (steps straight)
+    pairs = np.array(ring + [[5.5, 0.0, 0.6], [6.5, 0.0, 0.1]])
+    mol = Structure(np.array([6, 6, 1, 1]), cores, pairs)
+    x = torch.as_tensor(pairs)
+    turn = _BondRotations([mol], x)
+    arc = 0.05
+    step = turn.collective(x, arc, 2)
+    assert not torch.any(step[3:])
+    new = turn(x, step).numpy()
+    angle = arc / 0.5
+    sense = np.sign(np.cross(pairs[0] - [pairs[0][0], 0, 0], new[0] - [pairs[0][0], 0, 0])[0])
+    for p, q in zip(pairs[:3], new[:3], strict=True):
+        c, s = np.cos(sense * angle), np.sin(sense * angle)
+        expect = [p[0], c * p[1] - s * p[2], s * p[1] + c * p[2]]
+        assert np.allclose(q, expect, atol=1e-12)
+    assert np.array_equal(new[3:], pairs[3:])
+    assert not torch.any(turn.collective(x, arc, 4))
+
+
+def test_rotation_probe_keeps_the_minima_and_saves_evaluations(trained):
+    """Acetylene (the soft collective rotation of its triple-bond pairs): with the probe step
+    and its lower floor the same minima (energies within 1e-8 eV at fmax 1e-6) in fewer
+    evaluations at the benchmark's fmax 1e-4 than without."""
+    starts = _starts("300:400:15")
+    assert all(sorted(s.numbers.tolist()) == [1, 1, 6, 6] for s in starts)
+    probed = relax_pairs(trained, starts, fmax=1e-6, check_curvature=False)
+    plain = relax_pairs(trained, starts, fmax=1e-6, check_curvature=False, rotation_probe=0)
+    for a, b in zip(probed, plain, strict=True):
+        assert not a.failed and not b.failed, (a.reason, b.reason)
+        assert a.energy == pytest.approx(b.energy, abs=1e-8)
+    probed = relax_pairs(trained, starts, check_curvature=False)
+    plain = relax_pairs(trained, starts, check_curvature=False, rotation_probe=0)
+    assert sum(r.n_evaluations for r in probed) < sum(r.n_evaluations for r in plain)
+
+
 def test_bond_rotations_reach_the_straight_step_minima(trained):
     """Acetylene (the benchmark's slow soft rotation of the triple-bond pairs) and the other
     molecules: the same minima with and without bond-rotation steps, energies within 1e-8 eV

@@ -27,7 +27,11 @@ Default method (``initial_hessian="coulomb"``): a quasi-Newton on the per-struct
    (``M`` is Cartesian; the step model adds the connection term of the gradient, ``-g_r/rho``
    tangential and ``g_t/rho`` radial-tangential, :meth:`_BondRotations.connection`); the SR1
    secant is the turned step with the new gradient turned back less that term of the
-   short-range gradient, and ``M`` turns with the accepted pairs.
+   short-range gradient, and ``M`` turns with the accepted pairs;
+7. (with 5) once per structure, near its minimum, a step along the collective rotation of the
+   pairs about each double or triple bond (``rotation_probe``): the lumped start sees those
+   pairs turning one at a time, stiff, while together they turn almost freely; its secant
+   gives ``M`` that curvature, and the step's floor is then lower (``rotation_floor``).
 
 Every evaluation holds the SchNet filters of the core-core edges fixed (their lengths do not
 change at fixed cores and cell; :meth:`emlpack.nn.potential.EMLP.hold_filters`). A plain
@@ -169,6 +173,18 @@ class RelaxOptions:
     #: each pair's two nearest cores (:class:`_BondRotations`) instead of straight ones
     #: (measured on the 64-structure benchmark: acetylene's slowest 58 -> 40 evaluations)
     bond_rotations: bool = True
+    #: (method "coulomb", with ``bond_rotations``) a structure with a group of at least
+    #: ``rotation_probe_pairs`` pairs about one bond (a double or triple bond's pairs) takes
+    #: one step that turns each group together by this arc (Å, downhill) instead of a Newton
+    #: step, when its largest pair force first falls below ``rotation_probe_below`` (eV/Å; the
+    #: mode is soft near the minimum only); its secant puts that rotation's curvature into
+    #: the model, whose curvature floor is then ``rotation_floor`` (eV/Å^2) instead of 1e-2 for
+    #: that structure (measured on the relaxation benchmark: shipped member 0 CPU -22 %,
+    #: slowest 53 -> 28 evaluations; docs/relaxation.md; 0: off)
+    rotation_probe: float = 0.05
+    rotation_probe_pairs: int = 2
+    rotation_probe_below: float = 3e-2
+    rotation_floor: float = 3e-3
     #: (method "coulomb") model curvatures below minus this (eV/Å^2) are replaced by their
     #: magnitude in the step instead of shifting the whole model up to the floor (an SR1
     #: update from a near-orthogonal secant can leave a large spurious negative curvature;
@@ -598,8 +614,8 @@ def _missing_edges(model: EMLP, start: Structure, pairs: np.ndarray) -> bool:
     if start.n_pairs == 0 or np.array_equal(pairs, start.pairs):
         return False
     cutoff = model.config.cutoff
-    end = start.copy(pairs=pairs)
     if start.pbc:
+        end = start.copy(pairs=pairs)
         from emlpack.nn.neighbors import half_neighbor_list
 
         def edges(s: Structure) -> set:
@@ -609,10 +625,10 @@ def _missing_edges(model: EMLP, start: Structure, pairs: np.ndarray) -> bool:
                     for a, b, c in zip(i, j, shifts, strict=True)}
 
         return not edges(end) <= edges(start)
-    nc = start.n_cores
-    p0, p1 = start.all_positions, end.all_positions
-    d0 = np.linalg.norm(p0[nc:, None] - p0[None], axis=-1)  # [P, n_particles]
-    d1 = np.linalg.norm(p1[nc:, None] - p1[None], axis=-1)
+    p0 = start.all_positions
+    p1 = np.concatenate([start.positions, pairs], axis=0)
+    d0 = np.linalg.norm(start.pairs[:, None] - p0[None], axis=-1)  # [P, n_particles]
+    d1 = np.linalg.norm(pairs[:, None] - p1[None], axis=-1)
     return bool(np.any((d1 < cutoff) & (d0 >= cutoff)))
 
 
@@ -729,7 +745,7 @@ def _setup(model, structures, bounds, dtype=torch.float64, filter_table: float =
 def _newton_step(prob, hessian, gp, held, floor, active, alpha, max_step, mirror=None):
     """Regularised projected-Newton step: coordinates held at a bound by the gradient are
     fixed (rows/columns replaced by the identity; ``held`` None: none), the model is shifted
-    to curvature >= floor,
+    to curvature >= floor (float or (B,)),
     the longest pair displacement capped to ``max_step`` (float or (B,)) and scaled by
     ``alpha`` (B,). With ``mirror`` (eV/Å^2): model curvatures below ``-mirror`` are replaced
     by their magnitude (a descent step that goes no further along them than along a positive
@@ -749,7 +765,8 @@ def _newton_step(prob, hessian, gp, held, floor, active, alpha, max_step, mirror
     # factorisation of model - floor proves it) instead of an eigendecomposition (measured on
     # the relaxation benchmark: 86 % of the solves, step CPU 67-80 -> 36-47 ms per relaxation)
     eye = torch.eye(reduced.shape[1], dtype=dtype)
-    _, info = torch.linalg.cholesky_ex(reduced - floor * eye)
+    floor = torch.as_tensor(floor, dtype=dtype).expand(len(active))[idx]
+    _, info = torch.linalg.cholesky_ex(reduced - floor[:, None, None] * eye)
     chol, info_model = torch.linalg.cholesky_ex(reduced)
     plain = (info == 0) & (info_model == 0)
     sol = torch.cholesky_solve(rhs, torch.where(plain[:, None, None], chol, eye)).squeeze(-1)
@@ -758,7 +775,8 @@ def _newton_step(prob, hessian, gp, held, floor, active, alpha, max_step, mirror
         evals, evecs = torch.linalg.eigh(reduced[rest])
         strong = evals < -mirror if mirror is not None else torch.zeros_like(evals, dtype=bool)
         low = torch.where(strong, torch.inf, evals).amin(1, keepdim=True)
-        curv = torch.where(strong, evals.abs(), evals + torch.clamp(floor - low, min=0.0))
+        curv = torch.where(strong, evals.abs(),
+                           evals + torch.clamp(floor[rest, None] - low, min=0.0))
         coef = (evecs.transpose(1, 2) @ rhs[rest]).squeeze(-1) / curv
         sol[rest] = (evecs @ coef[:, :, None]).squeeze(-1)
     full = gp.new_zeros(gp.shape)
@@ -789,8 +807,8 @@ class _BondRotations:
         # (measured: rho_min 0.1, 0.2, 0.3 Å alike on the benchmark's acetylene, with the
         # curvilinear secants 0.2 and 0.3 too; 0.3 kept the fixture-weight propane of
         # tests/pairs within 100 quasi-Newton iterations: 77 evaluations, > 100 with 0.2)
-        a, b, on = [], [], []
-        for s in structures:
+        a, b, on, axis = [], [], [], []
+        for k, s in enumerate(structures):
             n = len(s.pairs)
             if n == 0:
                 continue
@@ -798,13 +816,22 @@ class _BondRotations:
                 a.append(np.zeros((n, 3)))
                 b.append(np.zeros((n, 3)))
                 on.append(np.zeros(n, dtype=bool))
+                axis.append(np.full((n, 4), -1))
                 continue
             d = np.linalg.norm(s.pairs[:, None] - s.positions[None], axis=-1)
             near = np.argsort(d, axis=1)[:, :2]
             a.append(s.positions[near[:, 0]])
             b.append(s.positions[near[:, 1]])
             on.append(np.ones(n, dtype=bool))
+            # the sign orients each axis from its lower-numbered core (the same sense of
+            # rotation for every pair of a bond)
+            sign = np.where(near[:, 0] < near[:, 1], 1, -1)
+            axis.append(np.column_stack([np.full(n, k), np.sort(near, axis=1), sign]))
         cat = np.concatenate
+        # per pair: the bond it turns about (structure, both cores); -1 for straight steps
+        # and the sign of its axis u relative to that bond
+        axis = torch.as_tensor(cat(axis) if axis else np.zeros((0, 4), dtype=np.int64))
+        self.axis, self.axis_sign = axis[:, :3], axis[:, 3:].to(x.dtype)
         self.a = torch.as_tensor(cat(a) if a else np.zeros((0, 3)), dtype=x.dtype)
         u = torch.as_tensor(cat(b) if b else np.zeros((0, 3)), dtype=x.dtype) - self.a
         self.u = u / torch.clamp(torch.linalg.norm(u, dim=1, keepdim=True), min=1e-12)
@@ -862,6 +889,20 @@ class _BondRotations:
                + (1 - torch.cos(theta)) * u[:, :, None] * u[:, None, :])
         return torch.where(use, turned, x + step), rot
 
+    def collective(self, x: torch.Tensor, arc: float, min_pairs: int) -> torch.Tensor:
+        """A step (P, 3) that turns every group of at least ``min_pairs`` pairs about one bond
+        (e.g. a triple bond's three pairs) together, each pair by the arc ``arc`` (Å, a step for
+        :meth:`turn`); zero for the other pairs."""
+        *_, that, on = self._frame(x)
+        on = on[:, 0]
+        if not bool(on.any()):
+            return torch.zeros_like(x)
+        _, group, count = torch.unique(self.axis[on], dim=0, return_inverse=True,
+                                       return_counts=True)
+        member = torch.zeros_like(on)
+        member[on] = count[group] >= min_pairs
+        return torch.where(member[:, None], arc * self.axis_sign * that, 0.0)
+
     def connection(self, x: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
         """Per-pair 3x3 blocks (P, 3, 3; eV/Å^2) that turn a Cartesian pair Hessian at ``x``
         into the Hessian in the cylindrical coordinates of :meth:`turn` (arc length at ``x``'s
@@ -886,6 +927,35 @@ class _BondRotations:
         ratio = (step * rhat).sum(1, keepdim=True) / torch.clamp(rho, min=1e-12)
         turned = (rot - torch.eye(3, dtype=x.dtype)).abs().amax((1, 2))[:, None] > 0
         return back + torch.where(turned, ratio, 0.0) * (back * that).sum(1, keepdim=True) * that
+
+
+def _sr1_update(prob, short, curvilinear, x, g_short, step, newton, rot, g_short_new, active):
+    """Symmetric-rank-one update of the short-range model ``short`` (B, m, m; eV/Å^2) from a
+    step (P, 3; Å) evaluated at ``x`` + ``step``: short-range gradients ``g_short`` at ``x`` and
+    ``g_short_new`` there (eV/Å), only for the ``active`` (B,) structures, skipped when r.s is
+    tiny. With ``rot`` (the pairs' rotations from :meth:`_BondRotations.turn` of ``newton``,
+    the step before turning) the secant is taken in the cylindrical coordinates of the turned
+    pairs: the step (tangential part the arc) and the short-range gradient in them, less the
+    connection term of the short-range gradient (``short`` is Cartesian). Returns the model and
+    which pairs turned (P,) bool (None for straight steps)."""
+    turned_pair = None
+    if rot is None:
+        s = prob.pad(step)
+        r = prob.pad(g_short_new - g_short) - (short @ s[:, :, None]).squeeze(-1)
+    else:
+        turned_pair = (rot - torch.eye(3, dtype=rot.dtype)).abs().amax((1, 2)) > 0
+        s_pairs = torch.where(turned_pair[:, None], newton, step)
+        conn = curvilinear.connection(x, g_short)
+        conn = torch.where(turned_pair[:, None, None], conn, 0.0)
+        y = (curvilinear.generalized(x, newton, rot, g_short_new) - g_short
+             - (conn @ s_pairs[:, :, None]).squeeze(-1))
+        s = prob.pad(s_pairs)
+        r = prob.pad(y) - (short @ s[:, :, None]).squeeze(-1)
+    rs = (r * s).sum(1)
+    size = torch.linalg.norm(r, dim=1) * torch.linalg.norm(s, dim=1)
+    ok = active & (rs.abs() > 1e-8 * size) & (rs.abs() > 1e-30)
+    upd = r[:, :, None] * r[:, None, :] / torch.where(ok, rs, 1.0)[:, None, None]
+    return torch.where(ok[:, None, None], short + upd, short), turned_pair
 
 
 def _blocks_to_padded(prob: _PairProblem, blocks: torch.Tensor) -> torch.Tensor:
@@ -950,6 +1020,13 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
     evaluate = _ActiveEvaluator(model, prob)
     evaluate32 = _ActiveEvaluator(model, prob32)
     curvilinear = _BondRotations(structures, x) if opts.bond_rotations else None
+    # structures with a group of pairs about one bond take one step along its collective
+    # rotation (``rotation_probe``) instead of a Newton step, once; then ``probed``
+    unprobed = torch.zeros(b, dtype=torch.bool)
+    probed = torch.zeros(b, dtype=torch.bool)
+    if curvilinear is not None and opts.rotation_probe > 0:
+        unprobed = segment_sum(curvilinear.collective(x, 1.0, opts.rotation_probe_pairs).abs()
+                               .sum(1), prob.pair_batch, b) > 0
     # trust radius (Å, largest pair displacement): halved to the rejected step's length,
     # doubled from an accepted one's up to max_step
     radius = torch.full((b,), opts.max_step, dtype=dtype)
@@ -981,8 +1058,23 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
             # the model in the cylindrical coordinates of the turned steps
             model_hessian = model_hessian + _blocks_to_padded(
                 prob, curvilinear.connection(x, grad))
-        step = _newton_step(prob, model_hessian, gp, held, 1e-2, moving,
+        # (a structure whose rotation was probed: its soft mode is in the model, and the
+        # floor would shorten the steps along it)
+        floor = torch.where(probed, opts.rotation_floor, 1e-2)
+        step = _newton_step(prob, model_hessian, gp, held, floor, moving,
                             torch.ones_like(radius), radius, opts.mirror_curvature or None)
+        probing = moving & unprobed & (fmax < opts.rotation_probe_below)
+        if bool(probing.any()):
+            # the lumped start sees a triple bond's pairs turning one at a time, stiff, while
+            # together they turn almost freely near the minimum (measured: docs/relaxation.md):
+            # a step along that rotation, downhill, puts its curvature into the SR1 model
+            rotation = curvilinear.collective(x, opts.rotation_probe, opts.rotation_probe_pairs)
+            slope = segment_sum((grad * rotation).sum(1), prob.pair_batch, b)
+            downhill = torch.where(slope > 0, -1.0, 1.0).to(dtype)
+            step = torch.where(probing[prob.pair_batch, None],
+                               downhill[prob.pair_batch, None] * rotation, step)
+            unprobed &= ~probing
+            probed |= probing
         newton = step
         rot = None
         if curvilinear:
@@ -1028,30 +1120,10 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         exact64 |= switch | trying & accept
         use32 &= ~trying
         reject = active & ~accept
-        # SR1 update of the short-range model
-        if rot is None:
-            s = prob.pad(step)
-            r = prob.pad((g_new - grad) - (gc_new - gc)) - (short @ s[:, :, None]).squeeze(-1)
-        else:
-            # secant in the cylindrical coordinates of the turned pairs: the step (Newton
-            # step, tangential part the arc) and the short-range gradient in them, less the
-            # connection term of the short-range gradient (the model ``short`` is Cartesian)
-            turned_pair = (rot - torch.eye(3, dtype=dtype)).abs().amax((1, 2)) > 0
-            s_pairs = torch.where(turned_pair[:, None], newton, step)
-            g_short = grad - gc
-            conn = curvilinear.connection(x, g_short)
-            conn = torch.where(turned_pair[:, None, None], conn, 0.0)
-            y = (curvilinear.generalized(x, newton, rot, g_new - gc_new) - g_short
-                 - (conn @ s_pairs[:, :, None]).squeeze(-1))
-            s = prob.pad(s_pairs)
-            r = prob.pad(y) - (short @ s[:, :, None]).squeeze(-1)
-        rs = (r * s).sum(1)
         # SR1 from every evaluated step, rejected ones included (measured: updating from
-        # accepted steps only needs 2-5x more iterations); skipped when r.s is tiny
-        size = torch.linalg.norm(r, dim=1) * torch.linalg.norm(s, dim=1)
-        ok = active & (rs.abs() > 1e-8 * size) & (rs.abs() > 1e-30)
-        upd = r[:, :, None] * r[:, None, :] / torch.where(ok, rs, 1.0)[:, None, None]
-        short = torch.where(ok[:, None, None], short + upd, short)
+        # accepted steps only needs 2-5x more iterations)
+        short, turned_pair = _sr1_update(prob, short, curvilinear, x, grad - gc, step, newton,
+                                         rot, g_new - gc_new, active)
         if rot is not None:
             # the short-range model turns with the accepted pairs (only the structures with a
             # turned pair: the others' rotations are the identity)
@@ -1072,9 +1144,11 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
         hc = torch.where(accept[:, None, None], hc_new, hc)
         energy = torch.where(accept, e_new, energy)
         taken = prob.per_structure_max_norm(step)
+        old_radius = radius
         radius = torch.where(accept, torch.clamp(torch.maximum(radius, 2.0 * taken),
                                                  max=opts.max_step), radius)
         radius = torch.where(reject, 0.5 * taken, radius)
+        radius = torch.where(probing, old_radius, radius)  # a probe leaves the trust radius
         stalled |= reject & (radius < 1e-7)
         if opts.collapse_distance > 0:
             stalled |= accept & (prob.closest_pair_distance(x) < opts.collapse_distance)
