@@ -151,13 +151,16 @@ def select_molecules(csv_path: str | Path, seed: int = 0, n_large: int = 100,
 def labeling_order(molecules: list[dict]) -> list[dict]:
     """The order in which the campaign labels ``molecules`` (the list's order otherwise).
 
-    Within the first block (QM7 molecules with 2-5 heavy atoms) the validation and test
-    molecules come first, so that a model trained on the first shards can already be judged on
-    molecules it never saw; the split itself is fixed by the list and never depends on this.
+    Within each block (QM7 molecules with 2-5 heavy atoms; the rest: the IR molecules missing
+    from QM7 and the drawn 6-7 heavy-atom molecules) the validation and test molecules come
+    first, so that a model trained on the first shards can already be judged on molecules it
+    never saw, and a campaign that stops at its target (fewer molecules than listed) has its
+    whole validation and test split; the split itself is fixed by the list and never depends
+    on this. (Until shard 0114 of mini-eqm7 the second block was labeled in list order.)
     """
     def key(m: dict) -> tuple[int, int]:
         first_block = int(m["n_heavy"]) <= 5 and m["name"].startswith("qm7-")
-        return (0, int(m["split"] == "train")) if first_block else (1, 0)
+        return (int(not first_block), int(m["split"] == "train"))
 
     return sorted(molecules, key=key)  # stable: the list's order within each group
 
@@ -436,7 +439,9 @@ def write_card(folder: str | Path) -> Path:
         "- order: every molecule with 2-5 heavy atoms, then the IR test molecules missing"
         f" from the source, then {settings['n_large']} molecules with 6-7 heavy atoms drawn"
         f" with seed {settings['seed']}; labeled in this order, except that the validation"
-        " and test molecules with 2-5 heavy atoms are labeled before the training ones;",
+        " and test molecules of each block (2-5 heavy atoms; the rest) are labeled before that"
+        " block's training ones (in the second block since 2026-11-26, after shard 0114; the"
+        " molecules labeled before that are in list order);",
         f"- split by molecule (fixed before labeling, `{MOLECULES_FILE}`): {n_split['train']}"
         f" train, {n_split['val']} validation, {n_split['test']} test; the IR molecules"
         " aziridine and 3-(methylamino)but-2-enal are in test;",
