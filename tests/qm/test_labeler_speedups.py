@@ -132,8 +132,12 @@ def test_kept_heap_serves_the_next_block_without_page_faults(keep):
     out = subprocess.run([sys.executable, "-c", _HEAP_PROBE, keep], capture_output=True,
                          text=True, check=True).stdout.split()
     first, second = int(out[0]), int(out[1])
-    assert first > 50, out  # 200 MB touched (4 kB or 2 MB pages)
+    # 200 MB touched: 100 faults in 2 MB pages up to ~49 000 in 4 kB pages, and with
+    # transparent huge pages the mix differs from block to block (seen in CI: 15 605 then
+    # 2 355 faults with the memory released), so the released case is told apart from the
+    # kept one by the second block faulting at all (>= 100 MB in 2 MB pages), not by a ratio
+    assert first > 50, out
     if keep == "keep":
-        assert second < 0.1 * first, out
+        assert second < 0.1 * first and second < 50, out
     else:
-        assert second > 0.5 * first, out
+        assert second > 50, out
