@@ -194,6 +194,7 @@ def test_collective_rotation_turns_a_bonds_pairs_together():
     new = turn(x, step).numpy()
     angle = arc / 0.5
     sense = np.sign(np.cross(pairs[0] - [pairs[0][0], 0, 0], new[0] - [pairs[0][0], 0, 0])[0])
+    assert sense != 0 and np.linalg.norm(new[0] - pairs[0]) == pytest.approx(arc, rel=1e-3)
     for p, q in zip(pairs[:3], new[:3], strict=True):
         c, s = np.cos(sense * angle), np.sin(sense * angle)
         expect = [p[0], c * p[1] - s * p[2], s * p[1] + c * p[2]]

@@ -48,6 +48,7 @@ def test_selection_rules():
     assert n_held > 0 and all(m["split"] != "train" and m["n_heavy"] <= 5 for m in order[:n_held])
     rest = order[n_small:]  # the second block: its held-out molecules first too
     n_rest_held = sum(1 for m in mols[n_small:] if m["split"] != "train")
+    assert n_rest_held > 0
     assert all(m["split"] != "train" for m in rest[:n_rest_held])
     assert all(m["split"] == "train" for m in rest[n_rest_held:])
     assert [m["name"] for m in rest if m["split"] == "train"] == [
