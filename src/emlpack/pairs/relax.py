@@ -31,7 +31,7 @@ Default method (``initial_hessian="coulomb"``): a quasi-Newton on the per-struct
 7. (with 5) once per structure, near its minimum, a step along the collective rotation of the
    pairs about each double or triple bond (``rotation_probe``): the lumped start sees those
    pairs turning one at a time, stiff, while together they turn almost freely; its secant
-   gives ``M`` that curvature, and the step's floor is then lower (``rotation_floor``).
+   gives ``M`` that curvature.
 
 Every evaluation holds the SchNet filters of the core-core edges fixed (their lengths do not
 change at fixed cores and cell; :meth:`emlpack.nn.potential.EMLP.hold_filters`). A plain
@@ -178,13 +178,15 @@ class RelaxOptions:
     #: one step that turns each group together by this arc (Å, downhill) instead of a Newton
     #: step, when its largest pair force first falls below ``rotation_probe_below`` (eV/Å; the
     #: mode is soft near the minimum only); its secant puts that rotation's curvature into
-    #: the model, whose curvature floor is then ``rotation_floor`` (eV/Å^2) instead of 1e-2 for
-    #: that structure (measured on the relaxation benchmark: shipped member 0 CPU -22 %,
-    #: slowest 53 -> 28 evaluations; docs/relaxation.md; 0: off)
+    #: the model (measured on the relaxation benchmark: shipped member 0 CPU -16 %, slowest
+    #: 53 -> 36 evaluations; docs/relaxation.md; 0: off). ``rotation_floor``: the Newton
+    #: step's curvature floor (eV/Å^2) for a probed structure (a lower one, 3e-3, was faster
+    #: on the benchmark but failed more often on linear molecules with two triple bonds,
+    #: whose rotations are exactly flat)
     rotation_probe: float = 0.05
     rotation_probe_pairs: int = 2
     rotation_probe_below: float = 3e-2
-    rotation_floor: float = 3e-3
+    rotation_floor: float = 1e-2
     #: (method "coulomb") model curvatures below minus this (eV/Å^2) are replaced by their
     #: magnitude in the step instead of shifting the whole model up to the floor (an SR1
     #: update from a near-orthogonal secant can leave a large spurious negative curvature;
