@@ -183,6 +183,66 @@ def test_retry_failed_labels_recorded_failures_once_their_cause_is_fixed(tmp_pat
     assert "- failures: 0; 4 earlier failures labeled on a retry" in card
 
 
+def test_target_prefix_counts_finished_molecules_by_their_labels():
+    """The prefix is the shortest one that reaches both targets, counting a finished molecule
+    by its labeled configurations and any other by the recipe's count."""
+    from collections import Counter
+
+    order = [{"name": f"m{k}"} for k in range(6)]
+    target = {"configurations": 13, "molecules": 2}
+    prefix, info = campaign.target_prefix(order, target, 6, Counter(), Counter())
+    assert [m["name"] for m in prefix] == ["m0", "m1", "m2"] and not info["reached"]
+    # m0 finished with 4 of 6 labeled (2 failures), m1 all failed: two more molecules needed
+    labeled, done = Counter(m0=4), Counter(m0=6, m1=6)
+    prefix, info = campaign.target_prefix(order, target, 6, labeled, done)
+    assert [m["name"] for m in prefix] == ["m0", "m1", "m2", "m3"]
+    assert info["labeled"] == 4 and info["labeled_molecules"] == 1 and not info["reached"]
+    labeled, done = Counter(m0=4, m2=6, m3=6), Counter(m0=6, m1=6, m2=6, m3=6)
+    prefix, info = campaign.target_prefix(order, target, 6, labeled, done)
+    assert info["reached"] and info["prefix"] == 4
+    prefix, info = campaign.target_prefix(order, None, 6, labeled, done)
+    assert len(prefix) == 6 and not info["reached"]
+
+
+def test_campaign_stops_at_its_target_and_goes_past_it_when_asked(tmp_path, monkeypatch):
+    """With a target of one molecule the campaign labels the first molecule of the order,
+    extends the prefix when that one fails, stops once the target is reached (without starting
+    any work), and ``past_target`` labels the rest."""
+    from emlpack.qm import labeling
+    from emlpack.qm.sampling import SamplingError
+
+    folder = _tiny_campaign(tmp_path / "c", smiles=("C=O", "CO", "C"))
+    settings = yaml.safe_load((folder / campaign.CAMPAIGN_FILE).read_text())
+    settings["target"] = {"configurations": 4, "molecules": 1}
+    (folder / campaign.CAMPAIGN_FILE).write_text(yaml.safe_dump(settings))
+    real = labeling.configurations
+    failing = {"m1", "m2"}  # m1 (test) comes first in the order, m2 is past the target
+
+    def broken(mol, *args, **kwargs):
+        if mol.name in failing:
+            raise SamplingError("not at a minimum")
+        return real(mol, *args, **kwargs)
+
+    monkeypatch.setattr(labeling, "configurations", broken)
+    out = campaign.run_campaign(folder, workers=0, progress=False)
+    assert out["new_records"] == 0 and out["new_failures"] == 4
+    assert not out["target"]["reached"] and out["target"]["prefix"] == 2
+    out = campaign.run_campaign(folder, workers=0, progress=False)  # m1 failed: m0 next
+    assert out["new_records"] == 4 and out["target"]["reached"]
+    assert {k.split("/")[0] for k in finished_keys(folder)} == {"m0", "m1"}
+    card = (folder / "README.md").read_text()
+    assert ("- target (campaign.yaml): 4 configurations of 1 molecules, reached;"
+            " `emlp campaign run` labels the first 2 molecules") in card
+    monkeypatch.setattr(labeling, "run_labeling", None)  # a reached target starts no work
+    out = campaign.run_campaign(folder, workers=0, progress=False)
+    assert out["new_records"] == 0 and out["target"]["reached"] and out["shards"] == []
+    monkeypatch.undo()
+    monkeypatch.setattr(labeling, "configurations", broken)
+    out = campaign.run_campaign(folder, workers=0, progress=False, past_target=True)
+    assert out["new_failures"] == 4  # m2
+    assert {k.split("/")[0] for k in finished_keys(folder)} == {"m0", "m1", "m2"}
+
+
 def test_sigterm_turns_finished_labels_into_a_shard(tmp_path, monkeypatch):
     """``kill PID`` (the end of a session) stops the run like Ctrl-C, and the labels finished
     so far become a shard before it exits."""

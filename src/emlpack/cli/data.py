@@ -131,6 +131,8 @@ def add_campaign(sub) -> None:
     pr.add_argument("--quiet", action="store_true", help="no progress bar")
     pr.add_argument("--retry-failed", action="store_true",
                     help="label the recorded failures again (e.g. after a fix of their cause)")
+    pr.add_argument("--past-target", action="store_true",
+                    help="label every listed molecule, past the target of campaign.yaml")
     pr.set_defaults(resumable=True)
     pc = csub.add_parser("card", help="regenerate README.md from the shards")
     pc.add_argument("folder")
@@ -155,10 +157,15 @@ def add_campaign(sub) -> None:
                                             threads=args.threads, hours=args.hours,
                                             shard_minutes=args.shard_minutes,
                                             commit=args.commit, progress=not args.quiet,
-                                            retry_failed=args.retry_failed)
+                                            retry_failed=args.retry_failed,
+                                            past_target=args.past_target)
+                target = out["target"]
                 print(f"{args.folder}: {out['new_records']} new configurations,"
                       f" {out['new_failures']} new failures, {len(out['shards'])} shards"
-                      f" in {out['wall_s'] / 3600:.2f} h")
+                      f" in {out['wall_s'] / 3600:.2f} h"
+                      + (f"; target of {target['configurations']} configurations and"
+                         f" {target['molecules']} molecules reached" if target["reached"]
+                         else ""))
             else:
                 print(campaign.write_card(args.folder))
         except (SamplingError, StoreError, OSError) as exc:

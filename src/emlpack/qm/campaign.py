@@ -165,6 +165,57 @@ def labeling_order(molecules: list[dict]) -> list[dict]:
     return sorted(molecules, key=key)  # stable: the list's order within each group
 
 
+def samples_per_molecule(recipe: dict) -> int:
+    """Configurations the recipe draws per molecule."""
+    return sum(int(s["count"]) for s in recipe.get("samples", []))
+
+
+def target_prefix(order: list[dict], target: dict | None, per_molecule: int,
+                  labeled: Counter, done: Counter) -> tuple[list[dict], dict]:
+    """The molecules of ``order`` that a campaign labels to meet its ``target``.
+
+    ``target`` (``campaign.yaml``): ``{"configurations": C, "molecules": M}`` (either may be
+    missing; None: no target). The prefix is the shortest one of ``order`` that reaches both,
+    counting each molecule whose keys are all finished (``done``: records and failures) with
+    its labeled configurations (``labeled``) and every other one with ``per_molecule``: a run
+    labels exactly what the target needs when nothing fails, and the next run extends the
+    prefix by as many molecules as failures cost. Returns the prefix and a summary (the target,
+    ``reached``: every prefix molecule finished and both counts met; the counts so far).
+    """
+    want_c = int((target or {}).get("configurations", 0))
+    want_m = int((target or {}).get("molecules", 0))
+    n_labeled = sum(labeled[m["name"]] for m in order)
+    n_molecules = sum(1 for m in order if labeled[m["name"]])
+    info = {"configurations": want_c, "molecules": want_m, "labeled": n_labeled,
+            "labeled_molecules": n_molecules}
+    if not target:
+        return order, dict(info, reached=False, prefix=len(order))
+    configs = mols = 0
+    prefix = order
+    for k, m in enumerate(order):
+        finished = done[m["name"]] >= per_molecule
+        expected = labeled[m["name"]] if finished else per_molecule
+        configs += expected
+        mols += expected > 0
+        if configs >= want_c and mols >= want_m:
+            prefix = order[:k + 1]
+            break
+    reached = (all(done[m["name"]] >= per_molecule for m in prefix)
+               and n_labeled >= want_c and n_molecules >= want_m)
+    return prefix, dict(info, reached=reached, prefix=len(prefix))
+
+
+def campaign_target(folder: str | Path, settings: dict | None = None,
+                    molecules: list[dict] | None = None) -> tuple[list[dict], dict]:
+    """:func:`target_prefix` of a campaign folder, from its settings and shards."""
+    settings = settings or load_settings(folder)
+    molecules = molecules if molecules is not None else read_molecule_table(folder)
+    labeled = Counter(k.split("/")[0] for k in finished_keys(folder, failures=False))
+    done = Counter(k.split("/")[0] for k in finished_keys(folder, failures=True))
+    return target_prefix(labeling_order(molecules), settings.get("target"),
+                         samples_per_molecule(settings["recipe"]), labeled, done)
+
+
 def campaign_recipe(samples_per_molecule: int = 6, prepare_level: str = "gfn2-xtb") -> dict:
     """The paper's recipe and level with ``samples_per_molecule`` configurations in the paper's
     proportions (NMS 600 K : 800 K : 800 K + torsion : 800 K + dimer = 1 : 1 : 1.5 : 1.5),
@@ -257,8 +308,9 @@ def export_shard(folder: str | Path, store: DatasetStore, run_info: dict) -> Pat
 def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = None,
                  hours: float | None = None, shard_minutes: float = 20.0,
                  commit: bool = False, progress: bool = True,
-                 retry_failed: bool = False) -> dict:
-    """Label the campaign's molecules in order, into new shards every ``shard_minutes``.
+                 retry_failed: bool = False, past_target: bool = False) -> dict:
+    """Label the campaign's molecules in order, into new shards every ``shard_minutes``,
+    up to the ``target`` of ``campaign.yaml`` (:func:`target_prefix`) unless ``past_target``.
 
     Args:
         workers: labeling processes (0: in this process).
@@ -269,7 +321,8 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
         retry_failed: label the keys of recorded failures again (their failure records stay
             in their shards; a key that fails again is not recorded twice, one labeled now
             counts as resolved on the card).
-    Returns a summary dict (new records, failures, shards written, wall time).
+        past_target: label every listed molecule, past the target.
+    Returns a summary dict (new records, failures, shards written, wall time, ``target``).
     """
     from emlpack.qm.labeling import run_labeling
 
@@ -323,7 +376,20 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
             flush(store)
         return over
 
-    sources = [(m["name"], m["smiles"]) for m in labeling_order(molecules)]
+    order, target = campaign_target(folder, settings, molecules)
+    if past_target:
+        order = labeling_order(molecules)
+    elif settings.get("target"):
+        log.info("campaign %s: target %d configurations of %d molecules: %s (the first %d"
+                 " molecules of the order; --past-target labels all %d)", folder,
+                 target["configurations"], target["molecules"],
+                 "reached" if target["reached"] else
+                 f"{target['labeled']} configurations of {target['labeled_molecules']}"
+                 " molecules so far", target["prefix"], len(molecules))
+    if target["reached"] and not past_target and not retry_failed:
+        return {"new_records": 0, "new_failures": 0, "shards": [], "wall_s": 0.0,
+                "target": target}
+    sources = [(m["name"], m["smiles"]) for m in order]
     with terminate_as_interrupt():
         try:
             summary = run_labeling(sources, work, recipe, workers=workers, progress=progress,
@@ -334,7 +400,8 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
             with DatasetStore(work, "a") as store:
                 flush(store)
     return {"new_records": summary.n_new, "new_failures": summary.n_failed_new,
-            "shards": [str(p) for p in state["shards"]], "wall_s": time.time() - t0}
+            "shards": [str(p) for p in state["shards"]], "wall_s": time.time() - t0,
+            "target": campaign_target(folder, settings, molecules)[1]}
 
 
 # ---------------------------------------------------------------------------------- card
@@ -342,8 +409,7 @@ def campaign_statistics(folder: str | Path) -> dict:
     """Counts, failures, wall time and throughput measured from the shards."""
     data = read_shards(folder)
     settings = load_settings(folder)
-    per_molecule = len(settings["recipe"].get("samples", [])) and sum(
-        int(s["count"]) for s in settings["recipe"]["samples"])
+    per_molecule = samples_per_molecule(settings["recipe"])
     counts = {k: 0 for k in SPLITS}
     configs_of: dict[str, int] = {}
     for s in data.structures:
@@ -398,6 +464,20 @@ def campaign_statistics(folder: str | Path) -> dict:
         "layouts": sorted({f"{m.get('run_workers')} workers x {m.get('run_threads')} threads"
                            f" on {m.get('run_cpus')} CPUs" for m in data.metadata}),
     }
+
+
+def target_lines(folder: str | Path, settings: dict, molecules: list[dict]) -> list[str]:
+    """The card's line on the target of ``campaign.yaml`` (none without one)."""
+    if not settings.get("target"):
+        return []
+    _, t = campaign_target(folder, settings, molecules)
+    state = ("reached" if t["reached"] else
+             f"not reached yet ({t['labeled']} configurations of {t['labeled_molecules']}"
+             " molecules)")
+    return [f"- target ({CAMPAIGN_FILE}): {t['configurations']} configurations of"
+            f" {t['molecules']} molecules, {state}; `emlp campaign run` labels the first"
+            f" {t['prefix']} molecules of the order and stops there (`--past-target`: all"
+            f" {len(molecules)});"]
 
 
 def write_card(folder: str | Path) -> Path:
@@ -455,6 +535,7 @@ def write_card(folder: str | Path) -> Path:
         "- by split: " + ", ".join(
             f"{k} {stats['configurations_by_split'][k]} configurations /"
             f" {stats['molecules_by_split'][k]} molecules" for k in SPLITS) + ";",
+        *target_lines(folder, settings, molecules),
         f"- hydride references: {', '.join(stats['hydrides']) or 'none yet'};",
         *([f"- fields: {v['configurations']} configurations {FIELD_TEXT[k]} (shards"
            f" {v['shards'][0]}-{v['shards'][-1]})" + ("" if k == "ball" else
