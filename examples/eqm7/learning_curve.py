@@ -36,7 +36,6 @@ import argparse
 import csv
 import datetime as dt
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -78,7 +77,6 @@ def _steps_taken(run: Path) -> tuple[int, int, int]:
 def point(args, data: Path, n_shards: int, steps: int, test_data: Path) -> list[dict]:
     """Train (if needed) and evaluate one model per seed; their rows of the table."""
     from emlpack.data.shards import read_shards
-    from emlpack.train.config import load_config as load_train_config
 
     prefix = prefix_folder(data, n_shards, args.workdir / "data")
     shards = read_shards(prefix)
@@ -89,15 +87,7 @@ def point(args, data: Path, n_shards: int, steps: int, test_data: Path) -> list[
     common = [f"workdir={workdir}", "groups=[aug]", f"seeds=[{seeds}]", *args.set]
     if args.snapshots is not None:
         common.append(f"training.snapshots={args.snapshots / workdir.name}")
-    base = run_study.load_config(args.config, common)
-    t = base.get("training", {})
-    train_yaml = Path(t.get("config", "train.yaml"))
-    train_yaml = train_yaml if train_yaml.is_absolute() else HERE / train_yaml
-    batch = int(load_train_config(train_yaml, t.get("overrides", []))["training"]["batch_size"])
-    per_epoch = math.ceil(len(split["train"]) / batch)
-    common += [f"train.training.max_epochs={max(1, round(steps / per_epoch))}",
-               f"train.training.decay_epochs={args.decay_steps / per_epoch}",
-               "train.training.max_time_minutes=null", "train.training.patience=1000000"]
+    common += [f"training.steps={steps}", f"training.decay_steps={args.decay_steps}"]
 
     def log(message: str) -> None:
         print(f"[{dt.datetime.now(dt.timezone.utc):%H:%M:%S}] {message}", flush=True)

@@ -286,6 +286,31 @@ def model_overrides(training: dict, group: str, seed: int | str) -> list[str]:
             for o in [*training.get("overrides", []), *extra]]
 
 
+def step_schedule(training: dict, n_train: int) -> list[str]:
+    """Training overrides for a schedule given in optimizer steps (``training.steps``, the
+    rate halved every ``training.decay_steps``), so that runs on data sets of other sizes take
+    the same steps on the same schedule: ``max_epochs = round(steps / steps_per_epoch)``, no
+    time limit, no early stopping (the best validation epoch is kept). None: train.yaml's
+    epochs and time limit."""
+    from emlpack.train.config import load_config as load_train_config
+
+    steps = training.get("steps")
+    if steps is None:
+        return []
+    batch = int(load_train_config(_resolve_train_yaml(training), training.get("overrides", []))
+                ["training"]["batch_size"])
+    per_epoch = max(1, -(-int(n_train) // batch))
+    decay = float(training.get("decay_steps") or steps)
+    return [f"training.max_epochs={max(1, round(float(steps) / per_epoch))}",
+            f"training.decay_epochs={decay / per_epoch}",
+            "training.max_time_minutes=null", "training.patience=1000000"]
+
+
+def _resolve_train_yaml(training: dict) -> Path:
+    path = Path(training.get("config", "train.yaml"))
+    return path if path.is_absolute() else HERE / path
+
+
 def stage_train(study: Study) -> list[Path]:
     from emlpack.train.config import load_config as load_train_config
     from emlpack.train.trainer import train
@@ -293,6 +318,7 @@ def stage_train(study: Study) -> list[Path]:
     t = study.cfg.get("training", {})
     split = study.shards().split_indices()
     n_data = len(study.shards().structures)
+    schedule = step_schedule(t, len(split["train"]))
     paths = []
     for group, augmented in study.groups().items():
         for seed in study.cfg["seeds"]:
@@ -315,11 +341,11 @@ def stage_train(study: Study) -> list[Path]:
             overrides = [f"data.path={study.data}", f"output.dir={run}",
                          f"augmentation.enabled={str(augmented).lower()}",
                          f"training.seed={seed}", "output.progress=false",
-                         *model_overrides(t, group, seed)]
+                         *schedule, *model_overrides(t, group, seed)]
             if t.get("snapshots"):  # trainings longer than a session: committed snapshots
                 overrides += [f"output.snapshot_dir={Path(t['snapshots']) / group / f'seed{seed}'}",
                               "output.snapshot_commit=true"]
-            cfg = load_train_config(_resolve(t.get("config", "train.yaml")), overrides)
+            cfg = load_train_config(_resolve_train_yaml(t), overrides)
             t0 = time.perf_counter()
             best = train(cfg)  # resumes from last.pt when a previous run was cut off
             study.work["train"] += 1

@@ -29,7 +29,7 @@ def study_run(tmp_path_factory):
         f"data={data}", f"workdir={root / 'work'}", f"results_dir={root / 'results'}",
         "seeds=[0, 1]",
         "train.model.n_features=8", "train.model.n_filters=8", "train.model.n_rbf=8",
-        "train.model.n_interactions=1", "train.training.max_epochs=2",
+        "train.model.n_interactions=1", "train.training.max_epochs=2", "training.steps=null",
         "train.training.batch_size=8", "train.training.lr=0.005",
         "train.training.max_time_minutes=null", "train.training.eval_batch_size=64",
         "evaluate.max_structures=4", "evaluate.max_structures_second=3",
@@ -188,6 +188,20 @@ def test_groups_restrict_training_to_the_chosen_group(study_run):
         bad.groups()
 
 
+def test_step_schedule_gives_the_learning_curves_epochs():
+    """``training.steps``: the 10x learning-curve models (849 training configurations, batch
+    16: 54 steps per epoch) were trained for 1370 epochs, the rate halved every 174.07."""
+    mod = study_module()
+    cfg = mod.load_config(ROOT / "examples" / "eqm7" / "config.yaml")
+    assert (cfg["training"]["steps"], cfg["training"]["decay_steps"]) == (74000, 9400)
+    assert mod.step_schedule(cfg["training"], 849) == [
+        "training.max_epochs=1370", f"training.decay_epochs={9400 / 54}",
+        "training.max_time_minutes=null", "training.patience=1000000"]
+    small = dict(cfg["training"], overrides=["training.batch_size=8"])
+    assert mod.step_schedule(small, 17)[0] == f"training.max_epochs={round(74000 / 3)}"
+    assert mod.step_schedule(dict(cfg["training"], steps=None), 849) == []
+
+
 def test_group_overrides_fine_tune_each_member_from_its_own_earlier_run(study_run):
     """``training.group_overrides`` with ``{group}``/``{seed}``: each augmented member of a new
     workdir starts from the same seed's model of the earlier run (at lr 0 its weights stay
@@ -203,7 +217,7 @@ def test_group_overrides_fine_tune_each_member_from_its_own_earlier_run(study_ru
     cfg = mod.load_config(ROOT / "examples" / "eqm7" / "config.yaml", [
         f"data={root / 'data'}", f"workdir={root / 'tuned'}", "seeds=[0, 1]", "groups=[aug]",
         "train.model.n_features=8", "train.model.n_filters=8", "train.model.n_rbf=8",
-        "train.model.n_interactions=1", "train.training.max_epochs=1",
+        "train.model.n_interactions=1", "train.training.max_epochs=1", "training.steps=null",
         "train.training.batch_size=8", "train.training.lr=0.0",
         "train.training.max_time_minutes=null", "train.training.eval_batch_size=64",
         f"training.group_overrides={{aug: ['training.init_weights={source}']}}"])

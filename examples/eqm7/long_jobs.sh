@@ -1,0 +1,151 @@
+#!/usr/bin/env bash
+# The study's long jobs (issues 12 and 15). Start them at the beginning of every session, from
+# the project root. Each job goes on exactly where its committed work stopped.
+#
+#   bash examples/eqm7/long_jobs.sh           start the jobs of the current phase that are not running
+#   bash examples/eqm7/long_jobs.sh status    what runs, the campaign's target, the final models' steps
+#   bash examples/eqm7/long_jobs.sh stop      stop them; each saves and commits its finished work
+#
+# Phase 1 lasts until the campaign reaches the target of datasets/mini-eqm7/campaign.yaml. It
+# runs three jobs:
+#   - the campaign (2 labeling processes; shards committed every 20 minutes);
+#   - the DFT references of the test molecules (references.sh; finished files committed);
+#   - at nice 10, the non-augmented model of the learning curve's 10x point (shards 0000-0078).
+# Phase 2 starts once the target is reached. It runs the final study's 8 models (run_study.py
+# train, config.yaml's schedule) in two training processes, seeds 0, 2 and seeds 1, 3, with the
+# augmented models first, beside the references. Snapshots are committed every 30 minutes to
+# examples/eqm7/snapshots/final. A watcher started in phase 1 starts phase 2 when the campaign
+# stops at its target.
+#
+# Each job runs on its own copy of src/ (/tmp/emlp-JOB), so editing the code does not change a
+# running job. Logs go to runs/*.log; PIDs to runs/long_jobs/JOB.pid.
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+PY=.venv/bin/python
+DATA=datasets/mini-eqm7
+PIDS=runs/long_jobs
+FINAL_SNAPSHOTS=examples/eqm7/snapshots/final
+LC=runs/eqm7-lc
+mkdir -p "$PIDS"
+
+running() {  # running JOB: its recorded process is alive
+  local f="$PIDS/$1.pid"
+  [ -f "$f" ] && kill -0 "$(cat "$f")" 2>/dev/null
+}
+
+code_copy() {  # code_copy JOB: a private copy of src/ for the job
+  rm -rf "/tmp/emlp-$1" && mkdir -p "/tmp/emlp-$1" && cp -r src "/tmp/emlp-$1/"
+}
+
+target_reached() {
+  PYTHONPATH=src "$PY" -c "
+import sys
+from emlpack.qm.campaign import campaign_target
+sys.exit(0 if campaign_target('$DATA')[1]['reached'] else 1)"
+}
+
+start_campaign() {
+  running campaign && return 0
+  code_copy campaign
+  PYTHONPATH=/tmp/emlp-campaign/src OMP_WAIT_POLICY=PASSIVE nohup .venv/bin/emlp campaign run \
+    "$DATA" --workers 2 --threads 1 --shard-minutes 20 --commit --quiet >> runs/campaign.log 2>&1 &
+  echo $! > "$PIDS/campaign.pid"
+  echo "campaign: PID $!, log runs/campaign.log"
+}
+
+start_references() {
+  running references && return 0
+  code_copy refs
+  PYTHONPATH=/tmp/emlp-refs/src OMP_NUM_THREADS=1 bash examples/eqm7/references.sh \
+    > runs/references.out 2>&1
+  sed -n 's/^references: watcher PID \([0-9]*\)$/\1/p' runs/references.out > "$PIDS/references.pid"
+  echo "references: watcher PID $(cat "$PIDS/references.pid"), log runs/eqm7-references.log"
+}
+
+start_noaug_10x() {  # the learning curve's 10x non-augmented model (augmented vs not at equal data)
+  running noaug-10x && return 0
+  local d=$LC/data/shards-79
+  if [ ! -d "$d/shards" ]; then  # the 10x point's data: links to the first 79 shards
+    mkdir -p "$d/shards"
+    for f in campaign.yaml molecules.csv prepared references; do ln -sfn "$PWD/$DATA/$f" "$d/$f"; done
+    for i in $(seq -f %04g 0 78); do ln -sfn "$PWD/$DATA/shards/$i.h5" "$d/shards/$i.h5"; done
+  fi
+  code_copy noaug
+  PYTHONPATH=/tmp/emlp-noaug/src OMP_NUM_THREADS=1 nohup nice -n 10 "$PY" examples/eqm7/run_study.py \
+    train data=$d workdir=$LC/shards-79-steps-74000 "groups=[noaug]" "seeds=[0]" \
+    training.steps=74000 training.decay_steps=9400 \
+    training.snapshots=examples/eqm7/snapshots/shards-79-steps-74000 >> runs/noaug-s0.log 2>&1 &
+  echo $! > "$PIDS/noaug-10x.pid"
+  echo "noaug 10x: PID $! (nice 10), log runs/noaug-s0.log"
+}
+
+start_final() {  # the final study's models, two processes
+  code_copy final
+  local k seeds
+  for k in 0 1; do
+    running "final-$k" && continue
+    seeds=$([ "$k" = 0 ] && echo "0,2" || echo "1,3")
+    PYTHONPATH=/tmp/emlp-final/src OMP_NUM_THREADS=1 nohup "$PY" examples/eqm7/run_study.py train \
+      "groups=[aug,noaug]" "seeds=[$seeds]" training.snapshots=$FINAL_SNAPSHOTS \
+      >> "runs/final-$k.log" 2>&1 &
+    echo $! > "$PIDS/final-$k.pid"
+    echo "final models, seeds $seeds: PID $!, log runs/final-$k.log"
+  done
+}
+
+stop_job() {
+  if running "$1"; then
+    kill "$(cat "$PIDS/$1.pid")" && echo "$1: stopping (it saves and commits its finished work)"
+  fi
+}
+
+watch_campaign() {  # phase 1 -> 2: wait for the campaign, then train when its target is reached
+  while running campaign; do sleep 60; done
+  if target_reached; then
+    stop_job noaug-10x
+    sleep 60  # let it snapshot and commit
+    start_final
+  fi
+}
+
+case "${1:-start}" in
+  start)
+    start_references
+    if target_reached; then
+      echo "campaign: target reached (phase 2)"
+      start_final
+    else
+      start_campaign
+      start_noaug_10x
+      if ! running watcher; then
+        nohup bash "$0" _watch >> runs/long_jobs.log 2>&1 &
+        echo $! > "$PIDS/watcher.pid"
+        echo "watcher: PID $! (starts the final models when the campaign reaches its target)"
+      fi
+    fi
+    ;;
+  _watch)
+    watch_campaign
+    ;;
+  stop)
+    for job in watcher campaign references noaug-10x final-0 final-1; do stop_job "$job"; done
+    ;;
+  status)
+    for job in campaign references noaug-10x final-0 final-1 watcher; do
+      if running "$job"; then echo "$job: running (PID $(cat "$PIDS/$job.pid"))"; else echo "$job: -"; fi
+    done
+    PYTHONPATH=src "$PY" -c "
+from emlpack.qm.campaign import campaign_target
+t = campaign_target('$DATA')[1]
+print(f\"target: {t['configurations']} configurations of {t['molecules']} molecules;\"
+      f\" labeled {t['labeled']} configurations of {t['labeled_molecules']} molecules;\"
+      f\" {'reached' if t['reached'] else 'not reached'}\")"
+    for d in "$FINAL_SNAPSHOTS"/*/seed*; do
+      [ -d "$d" ] && echo "$d: $(ls "$d" | tail -1)"
+    done
+    ;;
+  *)
+    echo "usage: $0 [start|status|stop]" >&2
+    exit 2
+    ;;
+esac
