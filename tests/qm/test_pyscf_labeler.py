@@ -134,6 +134,55 @@ def test_reused_density_gives_the_same_labels_in_fewer_cycles():
             == PySCFLabeler(level)(numbers, far, localize=False).scf_cycles)
 
 
+def test_density_guess_extrapolates_central_differences_and_keeps_the_nearest():
+    """The second step of a central difference (in positions or in the field) starts from
+    ``2 D_a - D_b``; any other state from the nearest kept one within the shift limit."""
+    from emlpack.qm.pyscf_labeler import density_guess
+
+    pos = WATER[1]
+    eq = np.concatenate([pos.ravel(), np.zeros(3)])
+    minus, plus, other = eq.copy(), eq.copy(), eq.copy()
+    minus[3] -= 0.005
+    plus[3] += 0.005
+    other[4] += 0.005
+    d_eq, d_minus = np.full((2, 2), 1.0), np.full((2, 2), 0.9)
+    kept = [(eq, d_eq), (minus, d_minus)]
+    guess, used = density_guess(kept, plus, pos)
+    np.testing.assert_allclose(guess, 2.0 * d_eq - d_minus)
+    assert used == [0, 1]
+    guess, used = density_guess(kept, other, pos)  # eq is 0.005 away, minus 0.0071
+    assert guess is d_eq and used == [0]
+    field_plus, field_minus = eq.copy(), eq.copy()
+    field_plus[-1], field_minus[-1] = 0.05, -0.05
+    guess, _ = density_guess([(eq, d_eq), (field_plus, d_minus)], field_minus, pos)
+    np.testing.assert_allclose(guess, 2.0 * d_eq - d_minus)
+    far = eq.copy()
+    far[3] += 0.3
+    assert density_guess(kept, far, pos) == (None, [])
+
+
+def test_central_difference_steps_start_from_the_extrapolated_density():
+    """With ``reuse_density`` the + step of a central difference after the - step starts from
+    ``2 D_eq - D_minus``: fewer SCF cycles than from the equilibrium density, same labels."""
+    numbers, pos = WATER
+    level = Level(basis="6-31g", conv_tol=1e-10)
+    minus, plus = pos.copy(), pos.copy()
+    minus[1, 2] -= 0.005
+    plus[1, 2] += 0.005
+    reuse = PySCFLabeler(level, boys_starts=1, reuse_density=True)
+    for p in (pos, minus):
+        assert reuse(numbers, p, localize=False).ok
+    extrapolated = reuse(numbers, plus, localize=False)
+    from_eq = PySCFLabeler(level, boys_starts=1, reuse_density=True)
+    assert from_eq(numbers, pos, localize=False).ok
+    nearest = from_eq(numbers, plus, localize=False)
+    fresh = PySCFLabeler(level, boys_starts=1)(numbers, plus, localize=False)
+    assert extrapolated.scf_cycles < nearest.scf_cycles, (extrapolated.scf_cycles,
+                                                          nearest.scf_cycles)
+    assert abs(extrapolated.energy - fresh.energy) < 1e-7
+    np.testing.assert_allclose(extrapolated.forces, fresh.forces, atol=1e-5)
+
+
 def test_centres_give_the_dipole_and_cores_are_recognised():
     """Core centre on O, 4 valence pairs, and sum q r of the centres equals the SCF dipole."""
     numbers, pos = WATER
