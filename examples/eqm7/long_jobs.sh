@@ -20,7 +20,9 @@
 # Each job runs on its own copy of src/ (/tmp/emlp-JOB), so editing the code does not change a
 # running job. Logs go to runs/*.log; PIDs to runs/long_jobs/JOB.pid.
 set -euo pipefail
-cd "$(dirname "$0")/../.."
+# EMLP_ROOT: the project root, for the watcher (it runs from a copy of this script, so that
+# editing the script does not change a running watcher)
+cd "${EMLP_ROOT:-$(dirname "$0")/../..}"
 PY=.venv/bin/python
 DATA=datasets/mini-eqm7
 PIDS=runs/long_jobs
@@ -108,6 +110,7 @@ watch_campaign() {  # phase 1 -> 2: wait for the campaign, then train when its t
   fi
 }
 
+main() {
 case "${1:-start}" in
   start)
     start_references
@@ -118,7 +121,8 @@ case "${1:-start}" in
       start_campaign
       start_noaug_10x
       if ! running watcher; then
-        nohup bash "$0" _watch >> runs/long_jobs.log 2>&1 &
+        cp "$0" /tmp/emlp-long_jobs.sh
+        EMLP_ROOT=$PWD nohup bash /tmp/emlp-long_jobs.sh _watch >> runs/long_jobs.log 2>&1 &
         echo $! > "$PIDS/watcher.pid"
         echo "watcher: PID $! (starts the final models when the campaign reaches its target)"
       fi
@@ -149,3 +153,6 @@ print(f\"target: {t['configurations']} configurations of {t['molecules']} molecu
     exit 2
     ;;
 esac
+}
+
+main "$@"; exit $?  # one line: bash has read the whole script before it runs
