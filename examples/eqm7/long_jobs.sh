@@ -24,6 +24,10 @@ set -euo pipefail
 # editing the script does not change a running watcher)
 cd "${EMLP_ROOT:-$(dirname "$0")/../..}"
 PY=.venv/bin/python
+if [ ! -x "$PY" ]; then
+  echo "long_jobs.sh: no $PY here: run 'make install' first (a fresh machine)" >&2
+  exit 2
+fi
 DATA=datasets/mini-eqm7
 PIDS=runs/long_jobs
 FINAL_SNAPSHOTS=examples/eqm7/snapshots/final
