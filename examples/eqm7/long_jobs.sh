@@ -14,8 +14,10 @@
 # Phase 2 starts once the target is reached. It runs the final study's 8 models (run_study.py
 # train, config.yaml's schedule) in two training processes, seeds 0, 2 and seeds 1, 3, with the
 # augmented models first, beside the references. Snapshots are committed every 30 minutes to
-# examples/eqm7/snapshots/final. A watcher started in phase 1 starts phase 2 when the campaign
-# stops at its target.
+# examples/eqm7/snapshots/final.
+# Phase 3 starts when both training processes have ended. The references still to compute are
+# split between two processes (alternate molecules of the card's order), one per core.
+# A watcher moves from one phase to the next as the jobs end, without waiting for a session.
 #
 # Each job runs on its own copy of src/ (/tmp/emlp-JOB), so editing the code does not change a
 # running job. Logs go to runs/*.log; PIDs to runs/long_jobs/JOB.pid.
@@ -59,13 +61,43 @@ start_campaign() {
   echo "campaign: PID $!, log runs/campaign.log"
 }
 
-start_references() {
-  running references && return 0
-  code_copy refs
-  PYTHONPATH=/tmp/emlp-refs/src OMP_NUM_THREADS=1 bash examples/eqm7/references.sh \
-    > runs/references.out 2>&1
-  sed -n 's/^references: watcher PID \([0-9]*\)$/\1/p' runs/references.out > "$PIDS/references.pid"
-  echo "references: watcher PID $(cat "$PIDS/references.pid"), log runs/eqm7-references.log"
+start_references() {  # start_references JOB [NAME ...]: the DFT stage (all test molecules, or NAMEs)
+  local job=$1
+  shift
+  running "$job" && return 0
+  running references || running references-a || running references-b || code_copy refs
+  PYTHONPATH=/tmp/emlp-refs/src OMP_NUM_THREADS=1 bash examples/eqm7/references.sh "$@" \
+    > "runs/$job.out" 2>&1
+  sed -n 's/^references: watcher PID \([0-9]*\)$/\1/p' "runs/$job.out" > "$PIDS/$job.pid"
+  echo "$job: watcher PID $(cat "$PIDS/$job.pid"), log runs/eqm7-references.log"
+}
+
+remaining_references() {  # the test molecules whose harmonic reference is still to compute
+  PYTHONPATH=src "$PY" -c "
+import csv, json
+from pathlib import Path
+refs = Path('$DATA/references/pbe0_aug-cc-pvtz')
+def done(name):
+    static = refs / f'{name}.json'
+    if (refs / f'{name}.ir.json').exists():
+        return True
+    return static.exists() and 'frequencies_cm-1' in json.loads(static.read_text())
+rows = csv.DictReader(open('$DATA/molecules.csv'))
+print(' '.join(r['name'] for r in rows if r['split'] == 'test' and not done(r['name'])))"
+}
+
+split_references() {  # phase 3: the remaining references in two processes (alternate molecules)
+  local names a=() b=() k=0 n
+  names=$(remaining_references)
+  [ -n "$names" ] || return 0
+  for n in $names; do
+    if [ $((k % 2)) = 0 ]; then a+=("$n"); else b+=("$n"); fi
+    k=$((k + 1))
+  done
+  stop_job references
+  sleep 30  # its watcher stops the stage and commits what is finished
+  start_references references-a "${a[@]}"
+  [ ${#b[@]} = 0 ] || start_references references-b "${b[@]}"
 }
 
 start_noaug_10x() {  # the learning curve's 10x non-augmented model (augmented vs not at equal data)
@@ -105,41 +137,46 @@ stop_job() {
   fi
 }
 
-watch_campaign() {  # phase 1 -> 2: wait for the campaign, then train when its target is reached
+watch() {  # phase 1 -> 2 -> 3 as the jobs end
   while running campaign; do sleep 60; done
-  if target_reached; then
+  target_reached || return 0  # the campaign stopped short of its target: a session looks
+  if running noaug-10x; then
     stop_job noaug-10x
     sleep 60  # let it snapshot and commit
-    start_final
   fi
+  start_final
+  while running final-0 || running final-1; do sleep 60; done
+  split_references
+}
+
+start_watcher() {
+  running watcher && return 0
+  cp "$0" /tmp/emlp-long_jobs.sh
+  EMLP_ROOT=$PWD nohup bash /tmp/emlp-long_jobs.sh _watch >> runs/long_jobs.log 2>&1 &
+  echo $! > "$PIDS/watcher.pid"
+  echo "watcher: PID $! (moves to the next phase as the jobs end)"
 }
 
 main() {
 case "${1:-start}" in
-  start)
-    start_references
-    if target_reached; then
-      echo "campaign: target reached (phase 2)"
-      start_final
-    else
+  start)  # the watcher starts phase 2 (and 3) at once when their time has come
+    running references-a || running references-b || start_references references
+    if ! target_reached; then
       start_campaign
       start_noaug_10x
-      if ! running watcher; then
-        cp "$0" /tmp/emlp-long_jobs.sh
-        EMLP_ROOT=$PWD nohup bash /tmp/emlp-long_jobs.sh _watch >> runs/long_jobs.log 2>&1 &
-        echo $! > "$PIDS/watcher.pid"
-        echo "watcher: PID $! (starts the final models when the campaign reaches its target)"
-      fi
     fi
+    start_watcher
     ;;
   _watch)
-    watch_campaign
+    watch
     ;;
   stop)
-    for job in watcher campaign references noaug-10x final-0 final-1; do stop_job "$job"; done
+    for job in watcher campaign references references-a references-b noaug-10x final-0 final-1; do
+      stop_job "$job"
+    done
     ;;
   status)
-    for job in campaign references noaug-10x final-0 final-1 watcher; do
+    for job in campaign references references-a references-b noaug-10x final-0 final-1 watcher; do
       if running "$job"; then echo "$job: running (PID $(cat "$PIDS/$job.pid"))"; else echo "$job: -"; fi
     done
     PYTHONPATH=src "$PY" -c "
@@ -149,7 +186,7 @@ print(f\"target: {t['configurations']} configurations of {t['molecules']} molecu
       f\" labeled {t['labeled']} configurations of {t['labeled_molecules']} molecules;\"
       f\" {'reached' if t['reached'] else 'not reached'}\")"
     for d in "$FINAL_SNAPSHOTS"/*/seed*; do
-      [ -d "$d" ] && echo "$d: $(ls "$d" | tail -1)"
+      if [ -d "$d" ]; then echo "$d: $(ls "$d" | tail -1)"; fi
     done
     ;;
   *)
