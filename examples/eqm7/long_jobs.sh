@@ -185,6 +185,19 @@ t = campaign_target('$DATA')[1]
 print(f\"target: {t['configurations']} configurations of {t['molecules']} molecules;\"
       f\" labeled {t['labeled']} configurations of {t['labeled_molecules']} molecules;\"
       f\" {'reached' if t['reached'] else 'not reached'}\")"
+    PYTHONPATH=src "$PY" -c "
+import json, sys
+from pathlib import Path
+refs = Path('$DATA/references/pbe0_aug-cc-pvtz')
+left = sys.argv[1:]
+calls = []
+for name in left:
+    n = len(json.loads((refs / f'{name}.json').read_text())['numbers']) \\
+        if (refs / f'{name}.json').exists() else None
+    done = len(list((refs / name / 'vib').glob('cache.*.json'))) if (refs / name / 'vib').is_dir() else 0
+    calls.append(f'{name} {done}/{6 * n + 1}' if n else f'{name} (static)')
+print(f'references: {len(left)} harmonic references left' + (': ' + ', '.join(calls) if calls else ''))
+" $(remaining_references)
     for d in "$FINAL_SNAPSHOTS"/*/seed*; do
       if [ -d "$d" ]; then echo "$d: $(ls "$d" | tail -1)"; fi
     done
