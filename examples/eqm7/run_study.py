@@ -487,6 +487,26 @@ def harmonic_ir(hessian: np.ndarray, born: np.ndarray, numbers, positions) -> di
     return {"frequencies": freqs, "intensities": IR_KM_PER_MOL_PER_E2_AMU * (dmu_dq**2).sum(0)}
 
 
+def _steps_from_trajectory(traj: Path, steps_dir: Path) -> None:
+    """The frames of an ASE optimisation trajectory (the references' working file before
+    2026-11-27) as step files ``steps_dir/NNNN.npz`` (positions, energy, forces), once; a frame
+    cut by a kill ends the conversion there."""
+    from ase.io import Trajectory
+
+    from emlpack._files import write_npz_atomic
+
+    if not traj.exists() or any(steps_dir.glob("[0-9]*.npz")):
+        return
+    try:
+        with Trajectory(traj) as frames:
+            for k, frame in enumerate(frames):
+                write_npz_atomic(steps_dir / f"{k:04d}.npz", positions=frame.positions,
+                                 energy=frame.get_potential_energy(),
+                                 forces=frame.get_forces())
+    except Exception:  # noqa: BLE001 - a frame cut by a kill: the frames before it stay
+        pass
+
+
 def dft_static(study: Study, row: dict, labeler) -> dict:
     """Static DFT reference of one molecule (``NAME.json``): BFGS optimum, energy, Boys centres,
     dipole, polarizability and Born charges from central finite fields; every sub-step cached
@@ -503,32 +523,49 @@ def dft_static(study: Study, row: dict, labeler) -> dict:
     t0 = time.perf_counter()
 
     def optimise():
-        # resumable step by step: a killed run restarts from the trajectory's last frame and
-        # BFGS's saved Hessian (dot files: working state, never committed)
-        from ase.io import Trajectory
+        # resumable step by step on any machine: every BFGS step is a small immutable file
+        # NAME/opt/NNNN.npz (committed with the references); a resume on the same machine
+        # reads BFGS's saved Hessian (.bfgs.json, working state), elsewhere it replays the
+        # steps from the start Hessian, as the uninterrupted run built it
+        from ase.calculators.singlepoint import SinglePointCalculator
 
-        cache.mkdir(parents=True, exist_ok=True)
-        traj, restart = cache / ".opt.traj", cache / ".bfgs.json"
-        atoms = Atoms(numbers=numbers, positions=start)
-        done = 0
-        if traj.exists():
-            try:
-                with Trajectory(traj) as frames:
-                    done = len(frames)
-                    atoms.positions = frames[-1].positions
-            except Exception:  # noqa: BLE001 - a frame cut by a kill: start again
-                traj.unlink()
-                restart.unlink(missing_ok=True)
-                done = 0
+        from emlpack._files import write_npz_atomic
+
+        steps_dir, restart = cache / "opt", cache / ".bfgs.json"
+        steps_dir.mkdir(parents=True, exist_ok=True)
+        _steps_from_trajectory(cache / ".opt.traj", steps_dir)  # runs before 2026-11-27
+        frames = []
+        for f in sorted(steps_dir.glob("[0-9]*.npz")):
+            with np.load(f) as s:
+                frame = Atoms(numbers=numbers, positions=s["positions"])
+                frame.calc = SinglePointCalculator(frame, energy=float(s["energy"]),
+                                                   forces=s["forces"])
+                frames.append(frame)
+        atoms = Atoms(numbers=numbers, positions=frames[-1].positions if frames else start)
         atoms.calc = labeler_calculator(labeler)
-        opt = BFGS(atoms, logfile=None, maxstep=0.1, restart=str(restart),
-                   trajectory=str(traj), append_trajectory=True)
-        if opt.state is None:  # a start (or a resume without BFGS's saved Hessian)
-            opt.H0 = _start_hessian(numbers, atoms.positions)
+        opt = BFGS(atoms, logfile=None, maxstep=0.1, restart=str(restart))
+        if opt.state is None:  # a start, or a resume without BFGS's saved Hessian
+            opt.H0 = _start_hessian(numbers, frames[0].positions if frames else start)
+            if frames:
+                opt.replay_trajectory(frames)
+
+        def save_step():
+            if frames and np.abs(atoms.positions - frames[-1].positions).max() < 1e-12:
+                return  # the resumed run's first call: that step is saved already
+            frame = atoms.copy()
+            frame.calc = SinglePointCalculator(frame, energy=atoms.get_potential_energy(),
+                                               forces=atoms.get_forces())
+            frames.append(frame)
+            write_npz_atomic(steps_dir / f"{len(frames) - 1:04d}.npz",
+                             positions=frame.positions, energy=frame.get_potential_energy(),
+                             forces=frame.get_forces())
+
+        opt.attach(save_step)
+        done = max(0, len(frames) - 1)
         converged = opt.run(fmax=float(d.get("fmax", 0.01)),
                             steps=max(0, int(d.get("max_steps", 100)) - done))
         return {"positions": atoms.positions, "converged": bool(converged),
-                "steps": done + opt.get_number_of_steps(),
+                "steps": max(0, len(frames) - 1),
                 "max_force": np.abs(atoms.get_forces()).max()}
 
     opt = _cached(cache / "opt.npz", optimise)

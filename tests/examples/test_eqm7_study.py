@@ -335,3 +335,46 @@ def test_md_starts_without_a_dft_reference_from_the_prepared_geometry(study_run)
     assert origin == "prepared for the reference (gfn2-xtb), pairs guessed"
     assert sorted(s.numbers.tolist()) == [1] * 6 + [6] * 2 and s.n_pairs == 7
     assert np.linalg.norm(s.positions[0] - s.positions[1]) < 1.6  # the C-C bond of ethane
+
+
+def test_dft_optimisation_resumes_on_a_fresh_machine_as_if_uninterrupted(tmp_path):
+    """The reference's BFGS steps are committed step files: a run killed after a few steps
+    and resumed without BFGS's saved Hessian (another machine) replays them and ends where an
+    uninterrupted run ends, with the same steps."""
+    from emlpack.qm.pyscf_labeler import PySCFLabeler
+
+    mod = study_module()
+    data = tiny_dataset(tmp_path / "data")
+
+    def study(work):
+        cfg = mod.load_config(ROOT / "examples" / "eqm7" / "config.yaml", [
+            f"data={data}", f"workdir={work}", "dft.level=tiny", "dft.boys_starts=1",
+            "dft.fmax=1e-4", "dft.max_steps=30", f"dft.dir={work / 'refs'}"])
+        return mod.Study(cfg, log=lambda m: None)
+
+    row = next(r for r in study(tmp_path / "w").test_molecules())
+    labeler = PySCFLabeler("tiny", boys_starts=1, reuse_density=True)
+    whole = mod.dft_static(study(tmp_path / "whole"), row, labeler)
+
+    class Killed(Exception):
+        pass
+
+    class Dies(PySCFLabeler):
+        calls = 0
+
+        def __call__(self, *args, **kwargs):
+            Dies.calls += 1
+            if Dies.calls > 3:
+                raise Killed
+            return super().__call__(*args, **kwargs)
+
+    cut = study(tmp_path / "cut")
+    with pytest.raises(Killed):
+        mod.dft_static(cut, row, Dies("tiny", boys_starts=1, reuse_density=True))
+    cache = cut.dft_dir / row["name"]
+    saved = len(list((cache / "opt").glob("*.npz")))  # the start and the finished steps
+    assert 2 <= saved < whole["optimisation"]["steps"] + 1
+    (cache / ".bfgs.json").unlink()  # a fresh machine: only the committed files
+    again = mod.dft_static(cut, row, PySCFLabeler("tiny", boys_starts=1, reuse_density=True))
+    assert again["optimisation"]["steps"] == whole["optimisation"]["steps"]
+    np.testing.assert_allclose(again["positions"], whole["positions"], atol=1e-6)
