@@ -297,18 +297,14 @@ def step_schedule(training: dict, n_train: int) -> list[str]:
     steps = training.get("steps")
     if steps is None:
         return []
-    batch = int(load_train_config(_resolve_train_yaml(training), training.get("overrides", []))
+    batch = int(load_train_config(_resolve(training.get("config", "train.yaml")),
+                                  training.get("overrides", []))
                 ["training"]["batch_size"])
     per_epoch = max(1, -(-int(n_train) // batch))
     decay = float(training.get("decay_steps") or steps)
     return [f"training.max_epochs={max(1, round(float(steps) / per_epoch))}",
             f"training.decay_epochs={decay / per_epoch}",
             "training.max_time_minutes=null", "training.patience=1000000"]
-
-
-def _resolve_train_yaml(training: dict) -> Path:
-    path = Path(training.get("config", "train.yaml"))
-    return path if path.is_absolute() else HERE / path
 
 
 def stage_train(study: Study) -> list[Path]:
@@ -345,7 +341,7 @@ def stage_train(study: Study) -> list[Path]:
             if t.get("snapshots"):  # trainings longer than a session: committed snapshots
                 overrides += [f"output.snapshot_dir={Path(t['snapshots']) / group / f'seed{seed}'}",
                               "output.snapshot_commit=true"]
-            cfg = load_train_config(_resolve_train_yaml(t), overrides)
+            cfg = load_train_config(_resolve(t.get("config", "train.yaml")), overrides)
             t0 = time.perf_counter()
             best = train(cfg)  # resumes from last.pt when a previous run was cut off
             study.work["train"] += 1
