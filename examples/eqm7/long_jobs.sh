@@ -194,8 +194,8 @@ calls = []
 for name in left:
     n = len(json.loads((refs / f'{name}.json').read_text())['numbers']) \\
         if (refs / f'{name}.json').exists() else None
-    done = len(list((refs / name / 'vib').glob('cache.*.json'))) if (refs / name / 'vib').is_dir() else 0
-    calls.append(f'{name} {done}/{6 * n + 1}' if n else f'{name} (static)')
+    done = len(list((refs / name / 'vib-internal').glob('*[+-].npz')))  # config: internal
+    calls.append(f'{name} {done}/{2 * (3 * n - 6)}' if n else f'{name} (static)')
 print(f'references: {len(left)} harmonic references left' + (': ' + ', '.join(calls) if calls else ''))
 " $(remaining_references)
     for d in "$FINAL_SNAPSHOTS"/*/seed*; do

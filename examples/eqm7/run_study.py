@@ -634,8 +634,11 @@ def dft_vibrations(study: Study, static: dict, labeler) -> dict:
         atoms = Atoms(numbers=numbers, positions=pos)
         atoms.calc = labeler_calculator(labeler)
         delta = float(d.get("hessian_delta", 0.005))
-        return {"hessian": finite_difference_hessian(atoms, delta, cache=cache / "vib"),
-                "method": f"{method} (central, {delta:g} Å)"}
+        directions = str(d.get("hessian_directions", "internal"))
+        folder = cache / ("vib" if directions == "cartesian" else f"vib-{directions}")
+        hess = finite_difference_hessian(atoms, delta, cache=folder, directions=directions)
+        return {"hessian": hess, "method": f"{method} (central, {delta:g} Å, {directions}"
+                f" directions)"}
 
     h = _cached(cache / "hessian.npz", hessian)
     hess = h["hessian"]

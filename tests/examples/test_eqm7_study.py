@@ -290,6 +290,10 @@ def test_dft_route_matches_finite_differences():
     fd_ir = mod.harmonic_ir(finite_difference_hessian(atoms, 0.005), born, z, r)
     assert np.allclose(fd_ir["frequencies"], ir["frequencies"], atol=2.0)
     assert np.allclose(fd_ir["intensities"], ir["intensities"], rtol=0.02)
+    fd_int = finite_difference_hessian(atoms, 0.005, directions="internal")  # the default
+    int_ir = mod.harmonic_ir(fd_int, born, z, r)
+    assert np.allclose(int_ir["frequencies"], fd_ir["frequencies"], atol=0.5)
+    assert np.allclose(int_ir["intensities"], fd_ir["intensities"], rtol=0.01)
 
 
 def test_cheap_level_hessian_starts_bfgs_in_fewer_steps(tmp_path):

@@ -276,6 +276,70 @@ def test_finite_difference_hessian_resumes_from_its_cache(tmp_path):
     np.testing.assert_allclose(again, first, rtol=0, atol=1e-12)
 
 
+def test_internal_hessian_gives_the_frequencies_with_fewer_force_calls(tmp_path):
+    """Central differences along the 3N - 6 vibrational directions only: on a quadratic
+    potential (where central differences are exact) the frequencies equal those of the exact
+    Hessian to 1e-9; on EMT methanol they equal the Cartesian scheme's within its O(delta^2)
+    error with 31 instead of 37 force calls; translations and rotations are exactly zero; a
+    rerun recomputes only missing displacements, and a moved geometry is refused."""
+    from ase.build import molecule
+    from ase.calculators.calculator import Calculator, all_changes
+    from ase.calculators.emt import EMT
+
+    from emlpack.geometry import normal_modes, rigid_body_modes
+    from emlpack.qm.labeling import finite_difference_hessian
+    from emlpack.qm.pyscf_labeler import LabelingError
+
+    class Counting(EMT):
+        calls = 0
+
+        def calculate(self, *args, **kwargs):
+            Counting.calls += 1
+            super().calculate(*args, **kwargs)
+
+    atoms = molecule("CH3OH")
+    n, m = len(atoms), atoms.get_masses()
+    rng = np.random.default_rng(3)
+    b = rng.normal(size=(3 * n, 3 * n))
+    k_exact = b @ b.T + np.eye(3 * n)
+    x0 = atoms.positions.copy()
+
+    class Quadratic(Calculator):
+        implemented_properties = ["energy", "forces"]
+
+        def calculate(self, atoms=None, properties=("energy",), system_changes=all_changes):
+            super().calculate(atoms, properties, system_changes)
+            u = (self.atoms.positions - x0).ravel()
+            self.results = {"energy": 0.5 * u @ k_exact @ u,
+                            "forces": -(k_exact @ u).reshape(-1, 3)}
+
+    atoms.calc = Quadratic()
+    h = finite_difference_hessian(atoms, 0.01, cache=tmp_path / "q", directions="internal")
+    np.testing.assert_allclose(normal_modes(h, x0, m)[0], normal_modes(k_exact, x0, m)[0],
+                               rtol=1e-9, atol=1e-9)
+
+    atoms.calc = Counting()
+    cartesian = finite_difference_hessian(atoms)
+    Counting.calls = 0
+    cache = tmp_path / "vib-internal"
+    internal = finite_difference_hessian(atoms, cache=cache, directions="internal")
+    assert Counting.calls == 2 * (3 * n - 6) + 1
+    w_c, w_i = normal_modes(cartesian, x0, m)[0], normal_modes(internal, x0, m)[0]
+    assert np.abs(w_i - w_c).max() < 1e-4 * np.abs(w_c).max()
+    rb = rigid_body_modes(x0, m) * np.repeat(1.0 / np.sqrt(m), 3)[:, None]  # Cartesian rigid
+    assert np.abs(internal @ rb).max() < 1e-10 * np.abs(internal).max()
+    np.testing.assert_allclose(internal, internal.T, atol=1e-12)
+    for f in sorted(cache.glob("*[+-].npz"))[:2]:
+        f.unlink()
+    Counting.calls = 0
+    again = finite_difference_hessian(atoms, cache=cache, directions="internal")
+    assert Counting.calls == 3  # the undisplaced SCF, then the two missing displacements
+    np.testing.assert_allclose(again, internal, rtol=0, atol=1e-12)
+    atoms.positions[0, 0] += 0.01
+    with pytest.raises(LabelingError, match="another geometry"):
+        finite_difference_hessian(atoms, cache=cache, directions="internal")
+
+
 @pytest.mark.parametrize("escapes", [0, 3])
 def test_preparation_steps_off_a_saddle_point(escapes, monkeypatch):
     """Planar NH3 is a GFN2-xTB saddle (the umbrella inversion) on which BFGS stays, as its
