@@ -614,8 +614,9 @@ def dft_static(study: Study, row: dict, labeler) -> dict:
 
 def dft_vibrations(study: Study, static: dict, labeler) -> dict:
     """Harmonic reference of one molecule at its static reference's optimum (``NAME.ir.json``):
-    Hessian (central differences of the forces, resumable per displacement in DFT_DIR/NAME/vib/,
-    or PySCF's analytic one), frequencies and IR intensities with the static Born charges."""
+    Hessian (central differences of the forces along ``dft.hessian_directions``, resumable per
+    displacement in DFT_DIR/NAME/vib-internal/ or, Cartesian, NAME/vib/; or PySCF's analytic
+    one), frequencies and IR intensities with the static Born charges."""
     from ase import Atoms
 
     from emlpack.qm.labeling import finite_difference_hessian, labeler_calculator, pyscf_hessian
