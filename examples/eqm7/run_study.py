@@ -558,8 +558,14 @@ def dft_static(study: Study, row: dict, labeler) -> dict:
 
         opt.attach(save_step)
         done = max(0, len(frames) - 1)
-        converged = opt.run(fmax=float(d.get("fmax", 0.01)),
-                            steps=max(0, int(d.get("max_steps", 100)) - done))
+        fmax, max_steps = float(d.get("fmax", 0.01)), int(d.get("max_steps", 100))
+        converged = opt.run(fmax=fmax, steps=max(0, max_steps - done))
+        if not converged:  # a reference at a non-stationary point: never a silent success
+            raise RuntimeError(
+                f"BFGS did not reach fmax {fmax:g} eV/Å in {max_steps} steps (largest force"
+                f" {np.abs(atoms.get_forces()).max():.3f} eV/Å); its steps are kept in"
+                f" {steps_dir}: raise dft.max_steps and delete {row['name']}.failed.json to"
+                " go on from the last one")
         return {"positions": atoms.positions, "converged": bool(converged),
                 "steps": max(0, len(frames) - 1),
                 "max_force": np.abs(atoms.get_forces()).max()}

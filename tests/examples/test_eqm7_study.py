@@ -344,7 +344,8 @@ def test_md_starts_without_a_dft_reference_from_the_prepared_geometry(study_run)
 def test_dft_optimisation_resumes_on_a_fresh_machine_as_if_uninterrupted(tmp_path):
     """The reference's BFGS steps are committed step files: a run killed after a few steps
     and resumed without BFGS's saved Hessian (another machine) replays them and ends where an
-    uninterrupted run ends, with the same steps."""
+    uninterrupted run ends, with the same steps. A run whose ``dft.max_steps`` end before
+    convergence fails (never an optimum at a non-stationary point) and keeps its steps."""
     from emlpack.qm.pyscf_labeler import PySCFLabeler
 
     mod = study_module()
@@ -379,6 +380,12 @@ def test_dft_optimisation_resumes_on_a_fresh_machine_as_if_uninterrupted(tmp_pat
     saved = len(list((cache / "opt").glob("*.npz")))  # the start and the finished steps
     assert 2 <= saved < whole["optimisation"]["steps"] + 1
     (cache / ".bfgs.json").unlink()  # a fresh machine: only the committed files
+    short = study(tmp_path / "cut")
+    short.cfg["dft"]["max_steps"] = saved - 1  # the steps done: not converged yet
+    with pytest.raises(RuntimeError, match=f"did not reach fmax 0.0001 eV/Å in {saved - 1} st"):
+        mod.dft_static(short, row, PySCFLabeler("tiny", boys_starts=1, reuse_density=True))
+    assert not (cache / "opt.npz").exists()  # never cached as an optimum
+    assert len(list((cache / "opt").glob("*.npz"))) == saved  # its steps are kept
     again = mod.dft_static(cut, row, PySCFLabeler("tiny", boys_starts=1, reuse_density=True))
     assert again["optimisation"]["steps"] == whole["optimisation"]["steps"]
     np.testing.assert_allclose(again["positions"], whole["positions"], atol=1e-6)
