@@ -25,6 +25,9 @@ commit_finished() {
   "$PY" - "$REFS" <<'PYEOF'
 import json, subprocess, sys
 from pathlib import Path
+
+from emlpack.commits import git_commit  # retries while another job's commit holds the lock
+
 refs = Path(sys.argv[1])
 done = []
 for p in sorted(refs.rglob("*")):
@@ -40,10 +43,7 @@ for p in sorted(refs.rglob("*")):
     done.append(str(p))
 new = subprocess.run(["git", "ls-files", "--others", "--exclude-standard", "--", *done],
                      capture_output=True, text=True, check=True).stdout.split()
-if new:
-    subprocess.run(["git", "add", "--", *new], check=True)
-    subprocess.run(["git", "commit", "-q", "-m",
-                    f"mini-eqm7 DFT references: {len(new)} finished files", "--", *new], check=True)
+if new and git_commit([Path(f) for f in new], f"mini-eqm7 DFT references: {len(new)} finished files"):
     print(f"committed {len(new)} files", flush=True)
 PYEOF
 }
