@@ -18,6 +18,20 @@ from emlpack.qm.sampling import SamplingError
 from emlpack.units import FIELD_AU_IN_V_PER_A
 from tests.conftest import ROOT
 
+
+def counting_emt():
+    """ASE's EMT calculator class with a counter of its calculations (``cls.calls``)."""
+    from ase.calculators.emt import EMT
+
+    class Counting(EMT):
+        calls = 0
+
+        def calculate(self, *args, **kwargs):
+            Counting.calls += 1
+            super().calculate(*args, **kwargs)
+
+    return Counting
+
 # tiny level, no optimisation, one Boys start: seconds per configuration
 QUICK = ["--level", "tiny", "-s", "prepare.optimize=false", "-s", "boys_starts=1",
          "-s", "hydrides=false"]
@@ -248,17 +262,10 @@ def test_finite_difference_hessian_resumes_from_its_cache(tmp_path):
     recomputes only the displacements whose files are empty or cut (EMT water, 18
     displacements)."""
     from ase.build import molecule
-    from ase.calculators.emt import EMT
 
     from emlpack.qm.labeling import finite_difference_hessian
 
-    class Counting(EMT):
-        calls = 0
-
-        def calculate(self, *args, **kwargs):
-            Counting.calls += 1
-            super().calculate(*args, **kwargs)
-
+    Counting = counting_emt()
     atoms = molecule("H2O")
     atoms.calc = Counting()
     plain = finite_difference_hessian(atoms)
@@ -284,19 +291,12 @@ def test_internal_hessian_gives_the_frequencies_with_fewer_force_calls(tmp_path)
     rerun recomputes only missing displacements, and a moved geometry is refused."""
     from ase.build import molecule
     from ase.calculators.calculator import Calculator, all_changes
-    from ase.calculators.emt import EMT
 
     from emlpack.geometry import normal_modes, rigid_body_modes
     from emlpack.qm.labeling import finite_difference_hessian
     from emlpack.qm.pyscf_labeler import LabelingError
 
-    class Counting(EMT):
-        calls = 0
-
-        def calculate(self, *args, **kwargs):
-            Counting.calls += 1
-            super().calculate(*args, **kwargs)
-
+    Counting = counting_emt()
     atoms = molecule("CH3OH")
     n, m = len(atoms), atoms.get_masses()
     rng = np.random.default_rng(3)

@@ -259,9 +259,7 @@ def internal_hessian(atoms, delta: float, folder: str | Path) -> np.ndarray:
         dirs = x / np.linalg.norm(x, axis=0)
         write_npz_atomic(saved_file, positions=pos, masses=masses, delta=delta,
                          directions=dirs)
-    todo = [(k, s) for k in range(dirs.shape[1]) for s in "-+"
-            if not (folder / f"{k:03d}{s}.npz").exists()]
-    if todo:
+    if any(not (folder / f"{k:03d}{s}.npz").exists() for k in range(dirs.shape[1]) for s in "-+"):
         atoms.get_forces()  # the undisplaced SCF first: each pair then starts from its density
 
     def forces(k: int, sign: str) -> np.ndarray:
