@@ -9,7 +9,7 @@ import pytest
 
 from emlpack.io.extxyz import read_reference_frames as read_frames
 from emlpack.qm.levels import PAPER, Level
-from emlpack.qm.pyscf_labeler import PySCFLabeler, caching_numint, reused_heap
+from emlpack.qm.pyscf_labeler import PySCFLabeler, caching_numint
 from emlpack.qm.relabel import match_centres
 from emlpack.units import FIELD_AU_IN_V_PER_A
 from tests.conftest import shared_path
@@ -81,19 +81,6 @@ def test_caching_numint_blocks_equal_plain_blocks():
     assert not ni._blocks
 
 
-def test_reused_heap_is_reentrant_and_restores():
-    """Large arrays inside and after the block are ordinary arrays; an error passes through."""
-    for _ in range(2):
-        with reused_heap():
-            a = np.ones(5_000_000)
-            del a
-            b = np.full(5_000_000, 2.0)
-            assert b.sum() == 1e7
-    with pytest.raises(ValueError), reused_heap():
-        raise ValueError("passes through")
-    assert np.zeros(5_000_000).sum() == 0.0
-
-
 @pytest.mark.slow
 def test_fast_settings_match_plain_pyscf_at_paper_level():
     """Ethanol frame 0 of the eQM7 subset (own field) at the paper's level (~2 min CPU)."""
@@ -104,40 +91,3 @@ def test_fast_settings_match_plain_pyscf_at_paper_level():
     d_e, d_f, d_c = _differences(plain, fast)
     print(f"ethanol paper level: |dE| {d_e:.1e} eV, |dF| {d_f:.1e} eV/Å, centres {d_c:.1e} Å")
     assert d_e < TOL_E and d_f < TOL_F and d_c < TOL_C, (d_e, d_f, d_c)
-
-
-_HEAP_PROBE = """
-import resource, sys
-import numpy as np
-from emlpack.qm.pyscf_labeler import reused_heap
-keep = sys.argv[1] == "keep"
-faults = []
-for _ in range(2):
-    f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-    with reused_heap(keep=keep):
-        a = np.ones(25_000_000)  # 200 MB
-        del a
-    faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)
-print(*faults)
-"""
-
-
-@pytest.mark.parametrize("keep", ["keep", "release"])
-def test_kept_heap_serves_the_next_block_without_page_faults(keep):
-    """``reused_heap(keep=True)`` (labeling workers): the second block reuses the pages the
-    first touched; by default the memory goes back to the kernel and is touched again."""
-    import subprocess
-    import sys
-
-    out = subprocess.run([sys.executable, "-c", _HEAP_PROBE, keep], capture_output=True,
-                         text=True, check=True).stdout.split()
-    first, second = int(out[0]), int(out[1])
-    # 200 MB touched: 100 faults in 2 MB pages up to ~49 000 in 4 kB pages, and with
-    # transparent huge pages the mix differs from block to block (seen in CI: 15 605 then
-    # 2 355 faults with the memory released), so the released case is told apart from the
-    # kept one by the second block faulting at all (>= 100 MB in 2 MB pages), not by a ratio
-    assert first > 50, out
-    if keep == "keep":
-        assert second < 0.1 * first and second < 50, out
-    else:
-        assert second > 50, out

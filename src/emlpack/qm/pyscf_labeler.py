@@ -20,17 +20,14 @@ so the numbers match the paper's data to the last digit that matters.
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import time
 import traceback
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from emlpack.errors import EmlpackError
+from emlpack.heap import reused_heap
 from emlpack.io.cores import find_core_centres
 from emlpack.qm.levels import Level, parse_level
 from emlpack.structure import Structure, StructureError
@@ -161,54 +158,6 @@ class LabelResult:
             info=meta,
             source=source,
         )
-
-
-# glibc mallopt parameters and their defaults
-_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
-_DEFAULT_TRIM_THRESHOLD, _DEFAULT_MMAP_MAX = 128 * 1024, 65536
-
-
-def _glibc():
-    """glibc through ctypes, or ``None`` (another C library, or no ``mallopt``)."""
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        if not (hasattr(libc, "mallopt") and hasattr(libc, "malloc_trim")):
-            return None
-    except OSError:
-        return None
-    return libc
-
-
-@contextmanager
-def reused_heap(keep: bool = False) -> Iterator[None]:
-    """Serve large arrays from the heap and keep freed memory for reuse, inside the block.
-
-    glibc maps every allocation above 32 MB afresh (``mmap``) and unmaps it when freed, so
-    each SCF cycle's grid buffers and each density-fitting block page-faults its memory in
-    again; here a page fault costs about 10 µs (1.1 s CPU to first-touch 440 MB, 0.04 s to
-    rewrite it). Inside the block, ``mmap`` is off for ``malloc`` and freed memory is not
-    returned, so later allocations reuse touched pages (C3H4 at the paper level: 285 000 ->
-    12 000 minor faults, the same numbers); on leaving, glibc's defaults are restored and
-    the free memory is given back (``malloc_trim``). Not glibc: does nothing.
-
-    ``keep=True`` keeps these settings and the memory after the block, for a process that
-    does nothing but label: the next label reuses the touched pages (aziridine at the paper
-    level, 2nd and 3rd label: 5 700-10 000 -> 5-14 minor faults, 14.0-15.1 -> 12.9-13.3 s
-    CPU); the process then holds the largest label's peak memory.
-    """
-    libc = _glibc()
-    if libc is None:
-        yield
-        return
-    libc.mallopt(_M_MMAP_MAX, 0)
-    libc.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1)
-    try:
-        yield
-    finally:
-        if not keep:
-            libc.mallopt(_M_MMAP_MAX, _DEFAULT_MMAP_MAX)
-            libc.mallopt(_M_TRIM_THRESHOLD, _DEFAULT_TRIM_THRESHOLD)
-            libc.malloc_trim(0)
 
 
 def caching_numint(budget_mb: float):

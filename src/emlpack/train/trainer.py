@@ -65,6 +65,7 @@ from emlpack.data.references import (
     load_hydrides,
 )
 from emlpack.data.shards import is_sharded, read_shards
+from emlpack.heap import reused_heap
 from emlpack.interrupts import terminate_as_interrupt
 from emlpack.nn.checkpoint import read_checkpoint, save_model
 from emlpack.nn.potential import EMLP, ModelConfig
@@ -266,7 +267,10 @@ class Trainer:
                 raise ConfigError(f"{out}: another training is running in this folder (its"
                                   " train.lock is held); wait for it or use another output.dir")
         try:
-            return self._train(resume)
+            # the double backward's edge-sized buffers are freed and allocated again at every
+            # step: reused from the heap instead of page-faulted in (emlpack.heap)
+            with reused_heap():
+                return self._train(resume)
         finally:
             if lock is not None:
                 os.close(lock)
