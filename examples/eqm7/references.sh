@@ -49,7 +49,7 @@ PYEOF
 }
 
 (
-  OMP_WAIT_POLICY=PASSIVE nohup "$PY" examples/eqm7/run_study.py dft $names >> "$LOG" 2>&1 &
+  OMP_WAIT_POLICY=PASSIVE nohup "$PY" examples/eqm7/run_study.py dft dft.keep_heap=true $names >> "$LOG" 2>&1 &
   job=$!
   echo "dft stage: PID $job, log $LOG"
   # kill WATCHER_PID: stop the stage (its sub-steps are written atomically), commit, exit

@@ -677,8 +677,11 @@ def stage_dft(study: Study) -> dict:
     d = study.cfg.get("dft", {})
     # one labeler for every small step of a molecule (BFGS, fields, Hessian displacements):
     # each SCF starts from the density of the step before
+    # keep_heap: a process that does nothing but this stage (references.sh) keeps its freed
+    # memory between force calls instead of page-faulting it in again (PySCFLabeler)
     labeler = PySCFLabeler(d.get("level", "paper"), boys_starts=int(d.get("boys_starts", 3)),
-                           threads=d.get("threads"), reuse_density=True)
+                           threads=d.get("threads"), reuse_density=True,
+                           keep_heap=bool(d.get("keep_heap", False)))
     figure = study.cfg.get("ir", {}).get("figure_molecules", list(IR_MOLECULES))
     out: dict = {}
     for row, part in dft_plan(study.test_molecules(), figure):
