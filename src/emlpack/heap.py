@@ -1,5 +1,5 @@
 """glibc heap settings for processes that allocate and free the same large arrays over and
-over (SCF cycles of the labeler, training steps).
+over (SCF cycles of the labeler, training steps, Hessians of a geometry optimisation).
 
 glibc serves an allocation above its ``mmap`` threshold (128 kB at first, raised up to 32 MB
 as mapped blocks are freed) with fresh pages and unmaps them when it is freed, so the next
