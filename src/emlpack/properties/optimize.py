@@ -186,60 +186,69 @@ def optimize(
             f"{structure.source}: cell optimisation under a field is not defined (the field"
             " term's strain derivative depends on the periodic images used)"
         )
+    if method not in ("newton", "lbfgs"):
+        raise ValueError(f"optimize: unknown method {method!r} (newton, lbfgs)")
+    prob = _Problem(model, cell)
     # exact Hessians at every iteration allocate large intermediates: kept in the heap
     # instead of page-faulted in again (C4H7NO2 with member 0 of mini-eqm7: 428 000 ->
     # 16 000 minor faults, 4.5 -> 2.7 s CPU; emlpack.heap)
     with reused_heap():
-        prob = _Problem(model, cell)
         if method == "lbfgs":
             return _lbfgs(prob, structure, fmax, smax, max_iterations, log)
-        if method != "newton":
-            raise ValueError(f"optimize: unknown method {method!r} (newton, lbfgs)")
-        s = structure
-        energy = prob.energy(s)
-        min_curv = float("nan")
-        reason = f"no convergence in {max_iterations} iterations"
-        converged = False
-        it = 0
-        h = hessian
-        for it in range(1, max_iterations + 1):
-            if h is None or (hessian_every and (it - 1) % hessian_every == 0):
-                g, h = prob.hessian(s)
-            else:
-                g = prob.gradient(s)
-            q = prob.basis(s)
-            evals, evecs = np.linalg.eigh(q.T @ h @ q)
-            min_curv = float(evals[0])
-            f_now, s_now = prob.measures(s, g)
-            if log:
-                log(f"iter {it - 1:3d}  E {energy:.10f} eV  fmax {f_now:.2e} eV/Å"
-                    + (f"  smax {s_now:.2e} eV/Å^3" if cell else ""))
-            if f_now < fmax and s_now < smax:
-                converged, reason, it = True, "", it - 1
+        return _newton(prob, structure, cell, fmax, smax, max_iterations, max_step, hessian,
+                       hessian_every, log)
+
+
+def _newton(prob: _Problem, structure: Structure, cell: bool, fmax: float, smax: float,
+            max_iterations: int, max_step: float, hessian: np.ndarray | None,
+            hessian_every: int, log) -> OptimizeResult:
+    """Newton steps with exact Hessians (every ``hessian_every`` iterations) and a
+    backtracking line search: :func:`optimize`'s default method."""
+    s = structure
+    energy = prob.energy(s)
+    min_curv = float("nan")
+    reason = f"no convergence in {max_iterations} iterations"
+    converged = False
+    it = 0
+    h = hessian
+    for it in range(1, max_iterations + 1):
+        if h is None or (hessian_every and (it - 1) % hessian_every == 0):
+            g, h = prob.hessian(s)
+        else:
+            g = prob.gradient(s)
+        q = prob.basis(s)
+        evals, evecs = np.linalg.eigh(q.T @ h @ q)
+        min_curv = float(evals[0])
+        f_now, s_now = prob.measures(s, g)
+        if log:
+            log(f"iter {it - 1:3d}  E {energy:.10f} eV  fmax {f_now:.2e} eV/Å"
+                + (f"  smax {s_now:.2e} eV/Å^3" if cell else ""))
+        if f_now < fmax and s_now < smax:
+            converged, reason, it = True, "", it - 1
+            break
+        coef = -(evecs.T @ (q.T @ g)) / np.maximum(np.abs(evals), 1e-2)
+        step = q @ (evecs @ coef)
+        step *= min(1.0, max_step / _longest(s, step, cell))
+        slope = float(g @ step)
+        alpha = 1.0
+        while True:
+            trial = prob.apply(s, alpha * step)
+            e_trial = prob.energy(trial)
+            if e_trial <= energy + 1e-4 * alpha * slope + 1e-12 * abs(energy):
                 break
-            coef = -(evecs.T @ (q.T @ g)) / np.maximum(np.abs(evals), 1e-2)
-            step = q @ (evecs @ coef)
-            step *= min(1.0, max_step / _longest(s, step, cell))
-            slope = float(g @ step)
-            alpha = 1.0
-            while True:
-                trial = prob.apply(s, alpha * step)
-                e_trial = prob.energy(trial)
-                if e_trial <= energy + 1e-4 * alpha * slope + 1e-12 * abs(energy):
-                    break
-                alpha *= 0.5
-                if alpha < 1e-6:
-                    break
+            alpha *= 0.5
             if alpha < 1e-6:
-                reason = "line search failed (energy does not decrease)"
                 break
-            s, energy = trial, e_trial
-            if closest_pair_distance(s.pairs, s.cell, s.pbc) < COLLAPSE_DISTANCE:
-                reason = f"two electron pairs collapsed onto one point after {it} iterations"
-                break
-        g = prob.gradient(s)
-        f_end, s_end = prob.measures(s, g)
-        return _checked(OptimizeResult(s, energy, converged, it, f_end, s_end, min_curv, reason, h))
+        if alpha < 1e-6:
+            reason = "line search failed (energy does not decrease)"
+            break
+        s, energy = trial, e_trial
+        if closest_pair_distance(s.pairs, s.cell, s.pbc) < COLLAPSE_DISTANCE:
+            reason = f"two electron pairs collapsed onto one point after {it} iterations"
+            break
+    g = prob.gradient(s)
+    f_end, s_end = prob.measures(s, g)
+    return _checked(OptimizeResult(s, energy, converged, it, f_end, s_end, min_curv, reason, h))
 
 
 def _checked(res: OptimizeResult) -> OptimizeResult:
