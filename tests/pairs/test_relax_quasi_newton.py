@@ -422,6 +422,24 @@ def test_kept_graph_products_equal_fresh_ones_and_the_davidson_start_block(train
     assert alone.min_curvature == pytest.approx(exact, abs=1e-4, rel=1e-3)
 
 
+def test_fast_pair_hessians_equal_the_reverse_passes(small):
+    """The closed-form SchNet pair blocks plus the analytic electrostatics equal one reverse
+    pass per column, for molecules of different pair counts (padding) and a crystal (image
+    shifts, reciprocal Ewald) in one batch, with pairs off their minimum."""
+    mol = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), index="0:600:300")
+    crystal = read_structures(shared_path("data/beta_glycine_pbe_wannier.xyz"), index="0:1")
+    g = small.graph(mol + crystal, dtype=torch.float64)
+    prob = _PairProblem(small, g)
+    assert len(set(g.n_pairs.tolist())) == 3
+    x = g.positions[prob.pair_idx].clone()
+    x = x + 0.05 * torch.sin(torch.arange(x.numel(), dtype=x.dtype)).reshape(x.shape)
+    fast, reverse = prob.hessians(x), prob.hessians(x, method="reverse")
+    scale = float(reverse.abs().max())
+    torch.testing.assert_close(fast, reverse, rtol=0, atol=1e-11 * scale)
+    with pytest.raises(ValueError, match="method"):
+        prob.hessians(x, method="forward")
+
+
 def test_exact_pair_hessians_equal_autograd(trained):
     """The padded pair-block Hessians of a batch (one reverse pass per column) equal
     torch.autograd's full Hessian of the summed energy, block by block."""

@@ -21,6 +21,7 @@ from emlpack.nn.electrostatics import (
     coulomb_molecular_hessian,
     ewald_reciprocal_hessian_fractional,
 )
+from emlpack.nn.graph import Graph
 from emlpack.nn.potential import EMLP
 from emlpack.nn.scatter import pair_blocks_to_matrix, segment_sum
 from emlpack.nn.schnet_hessian import schnet_edge_hessian
@@ -98,7 +99,7 @@ def extended_hessian(
     ``method="vmap"``: every row by ``torch.func.hessian`` (forward over reverse, vectorised).
     """
     if method == "fast":
-        if _standard_energy(model):
+        if standard_energy(model):
             return _extended_hessian_fast(model, structure, dtype, mixed)
         method = "reference"  # a subclass with its own energy: differentiate it as it is
     energy, x0 = _energy_function(model, structure, dtype)
@@ -124,10 +125,36 @@ def extended_hessian(
     return grad.detach(), hess
 
 
-def _standard_energy(model: EMLP) -> bool:
-    """Whether ``model``'s energy is EMLP's own (SchNet + electrostatics + field)."""
+def standard_energy(model: EMLP) -> bool:
+    """Whether ``model``'s energy is EMLP's own (SchNet + electrostatics + field), the energy
+    that the fast Hessians here differentiate."""
     cls = type(model)
     return cls.energy is EMLP.energy and cls.energy_parts is EMLP.energy_parts
+
+
+def short_range_position_hessian(model: EMLP, g: Graph, particles: torch.Tensor,
+                                 mixed: bool = False) -> torch.Tensor:
+    """Exact Hessian (eV/Å²) of the SchNet energy of the one structure of ``g`` (at
+    ``g.positions``, neighbour list as given) in the Cartesian positions of ``particles`` (k,),
+    the other particles and the cell held: shape (3k, 3k), particle by particle, x y z.
+
+    The fast method of :func:`extended_hessian` with only these directions: its cost grows
+    with 3k instead of the 3N + 3 extended variables (the pair block of a molecule, for the
+    pair relaxation's Newton steps). Molecules and crystals at fixed cell alike: with the cell
+    held, ``dr_e/dx`` and ``d2r_e/dx2`` are the molecular ones of the minimum-image edge
+    vectors. ``mixed``: the directional derivatives in float32 (as in :func:`extended_hessian`).
+    """
+    n = g.n_particles
+    cols = (3 * particles[:, None] + torch.arange(3, device=particles.device)).reshape(-1)
+    with torch.no_grad():
+        r0, jac, geometric = _edge_derivatives(model, g, g.positions.reshape(-1), pbc=False)
+        grad_r, h_sr = schnet_edge_hessian(
+            model.schnet, g.numbers, r0, g.edge_i, g.edge_j, jac[:, cols],
+            tangent_dtype=torch.float32 if mixed else None,
+        )
+        if len(cols) == 3 * n:
+            return h_sr + geometric(grad_r)
+        return h_sr + geometric(grad_r)[cols][:, cols]
 
 
 def _edge_derivatives(model: EMLP, g, x0: torch.Tensor, pbc: bool):
