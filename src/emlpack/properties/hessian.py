@@ -141,7 +141,7 @@ def short_range_position_hessian(model: EMLP, g: Graph, particles: torch.Tensor,
     The fast method of :func:`extended_hessian` with only these directions: its cost grows
     with 3k instead of the 3N + 3 extended variables (the pair block of a molecule, for the
     pair relaxation's Newton steps). Molecules and crystals at fixed cell alike: with the cell
-    held, ``dr_e/dx`` and ``d2r_e/dx2`` are the molecular ones of the minimum-image edge
+    held, ``dr_e/dx`` and ``d2r_e/dx2`` are the molecular ones of the image-shifted edge
     vectors. ``mixed``: the directional derivatives in float32 (as in :func:`extended_hessian`).
     """
     n = g.n_particles
