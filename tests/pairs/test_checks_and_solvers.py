@@ -154,3 +154,33 @@ def test_a_guess_restart_without_a_guess_is_a_failed_attempt(water, monkeypatch)
     solver.restart = "guess"
     with pytest.raises(CalculationFailed, match="no fresh electron-pair guess.*Boys"):
         solver.relax(model, s)
+
+
+def test_exact_blocks_equal_autograd_and_the_forward_differences():
+    """MD's fresh-start blocks (pair-pair, core-pair) in closed form equal torch.autograd's
+    position Hessian of a random EMLP on C2H6O under a field, with pairs off their minimum;
+    the forward differences used for models with their own energy agree to their step's
+    error. A toy model with its own energy term gets the differences."""
+    from emlpack.pairs.solvers import _hessian_columns, energy_gradient_function, exact_blocks
+    from tests.nn.helpers import eqm7_molecule, random_model
+
+    model = random_model(seed=2, elements=(1, 6, 8))
+    s = eqm7_molecule()
+    s = s.copy(pairs=s.pairs + 0.03 * np.sin(np.arange(s.pairs.size)).reshape(s.pairs.shape))
+    hpp, hcp = exact_blocks(model, s)
+    g = model.graph(s, dtype=torch.float64)
+    full = torch.autograd.functional.hessian(
+        lambda x: model.energy(g, x.reshape(-1, 3))[0], g.positions.reshape(-1)).numpy()
+    k = 3 * s.n_cores
+    scale = np.abs(full).max()
+    np.testing.assert_allclose(hpp, full[k:, k:], rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(hcp, full[:k, k:], rtol=0, atol=1e-12 * scale)
+    fd_pp, fd_cp = _hessian_columns(energy_gradient_function(model, s)[0], s.pairs, s.n_cores)
+    np.testing.assert_allclose(fd_pp, hpp, rtol=0, atol=1e-3 * scale)
+    np.testing.assert_allclose(fd_cp, hcp, rtol=0, atol=1e-3 * scale)
+    w = water_molecule()
+    toy = spring_model(w)
+    toy_pp, toy_cp = exact_blocks(toy, w)
+    ref_pp, ref_cp = _hessian_columns(energy_gradient_function(toy, w)[0], w.pairs, w.n_cores)
+    np.testing.assert_array_equal(toy_pp, ref_pp)
+    np.testing.assert_array_equal(toy_cp, ref_cp)

@@ -19,7 +19,7 @@ core forces). :class:`emlpack.calculators.ase.EMLPCalculator` takes any of them 
   evaluation; see docs/md.md. The curvature check (``want_curvature``) is a Davidson
   iteration on forward-difference Hessian-vector products preconditioned by the carried model
   (:func:`emlpack.pairs.relax.davidson_min_curvature`; ~6 evaluations instead of the exact
-  blocks' 3P + 1), whose products also refine the models.
+  blocks, :func:`exact_blocks`), whose products also refine the models.
 * :class:`BoxedLBFGSB` (MD, the paper's scheme): SciPy L-BFGS-B from the previous pairs with
   every coordinate boxed to ±3x the largest core displacement since the last call (0.1 Å on
   the first), ``gtol`` = ``fmax``.
@@ -63,6 +63,7 @@ from emlpack.pairs.relax import (
     pair_hessian,
     relax_pairs,
 )
+from emlpack.properties.hessian import extended_hessian, standard_energy
 from emlpack.structure import Structure
 
 __all__ = ["PairSolver", "BatchedSolver", "WarmStartSolver", "BoxedLBFGSB", "md_solver"]
@@ -312,18 +313,15 @@ class WarmStartSolver:
 
     def _exact_hessian(self, model: EMLP, structure: Structure) -> np.ndarray:
         """Exact pair Hessian into ``self.hessian`` (:func:`pair_hessian`); in
-        ``"corrected"`` mode the pair and core-pair blocks by forward differences of the full
-        gradient (3P + 1 evaluations, counted as one Hessian; faster than the
-        forward-over-reverse products of all particles). Returns the pair Hessian."""
+        ``"corrected"`` mode the pair and core-pair blocks (:func:`exact_blocks`, counted as
+        one Hessian). Returns the pair Hessian."""
         m = 3 * structure.n_pairs
         if not m:
             self.hessian = np.zeros((0, 0))
         elif not self.correct:
             self.hessian = pair_hessian(model, structure)
         else:
-            evaluate, _ = energy_gradient_function(model, structure)
-            self.hessian, self.coupling = _hessian_columns(evaluate, structure.pairs,
-                                                           structure.n_cores)
+            self.hessian, self.coupling = exact_blocks(model, structure)
             self.model_error = 0.0  # exact models: only this step's measured errors count
         return self.hessian
 
@@ -508,6 +506,22 @@ def energy_gradient_function(
         return float(e.detach()), grad.numpy()
 
     return evaluate, counter
+
+
+def exact_blocks(model: EMLP, structure: Structure) -> tuple[np.ndarray, np.ndarray]:
+    """Pair-pair (3P, 3P) and core-pair (3N, 3P) blocks (eV/Å^2) of the position Hessian of a
+    molecule at its pairs: the closed-form extended Hessian
+    (:func:`emlpack.properties.hessian.extended_hessian`) for EMLP's own energy, else forward
+    differences (:func:`_hessian_columns`). Measured with member 0 of ``mini-eqm7``, 1 thread:
+    hexane (19 pairs) 0.17-0.23 s instead of 0.78-0.83 s for the differences, C4H7NO2 (20
+    pairs) 0.14-0.17 s instead of 0.96-1.04 s; the differences' errors 4e-6-3e-5 relative."""
+    if not standard_energy(model):
+        evaluate, _ = energy_gradient_function(model, structure)
+        return _hessian_columns(evaluate, structure.pairs, structure.n_cores)
+    k, n = 3 * structure.n_cores, 3 * (structure.n_cores + structure.n_pairs)
+    h = extended_hessian(model, structure)[1].numpy()
+    hpp = h[k:n, k:n]
+    return 0.5 * (hpp + hpp.T), h[:k, k:n].copy()
 
 
 def _hessian_columns(evaluate: Callable[[np.ndarray], tuple[float, np.ndarray]],
