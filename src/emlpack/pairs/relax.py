@@ -339,13 +339,13 @@ class _PairProblem:
         h = h.to(x.dtype)
         at_x = g.with_positions(g.positions.detach().index_put((self.pair_idx,), x))
         for k in torch.nonzero(g.n_pairs > 0).squeeze(1).tolist():
-            keep = torch.zeros(g.n_structures, dtype=torch.bool)
+            keep = torch.zeros(g.n_structures, dtype=torch.bool, device=x.device)
             keep[k] = True
             sub = _subgraph(at_x, keep)
             pairs = torch.nonzero(sub.is_pair).squeeze(1)
             n = 3 * len(pairs)
             h[k, :n, :n] += short_range_position_hessian(self.model, sub, pairs).to(x.dtype)
-        pad = torch.arange(m)[None, :] >= 3 * g.n_pairs[:, None]
+        pad = torch.arange(m, device=x.device)[None, :] >= 3 * g.n_pairs[:, None]
         h = h + torch.diag_embed(pad.to(x.dtype))
         return 0.5 * (h + h.transpose(1, 2))
 
