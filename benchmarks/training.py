@@ -61,7 +61,7 @@ def main() -> None:
             loss = combine(loss_terms(predict(model, batch, trainer.reference), batch),
                            trainer.weights)
             trainer.optimizer.zero_grad(set_to_none=True)
-            loss.backward()
+            loss.backward(inputs=trainer.trained_parameters)  # as Trainer._train_epoch
             return [p.grad.clone() for p in model.parameters()]
 
         plain = gradients(batches[0])

@@ -300,3 +300,30 @@ def test_init_weights_starts_a_fresh_run_from_a_checkpoint(tmp_path, small_data)
     with pytest.raises(ValueError, match="n_features"):
         train(load_config(_config(tmp_path, other, "wide"),
                           [f"training.init_weights={source}", "model.n_features=24"]))
+
+
+def test_the_step_differentiates_every_parameter_and_nothing_else(tmp_path, small_data):
+    """``Trainer._train_epoch`` differentiates the loss with respect to the optimizer's
+    parameters only (``backward(inputs=...)``, which skips the positions' second derivatives):
+    the list is every parameter of the model, and each gradient equals the plain backward's,
+    bit for bit."""
+    from emlpack.train.loss import combine, loss_terms, predict
+    from emlpack.train.trainer import Trainer
+
+    trainer = Trainer(load_config(_config(tmp_path, small_data, "step")))
+    params = list(trainer.model.parameters())
+    assert [id(p) for p in trainer.trained_parameters] == [id(p) for p in params]
+    batch = next(iter(trainer._loader(0)))
+    trainer.model.train()
+
+    def gradients(inputs):
+        pred = predict(trainer.model, batch, trainer.reference)
+        loss = combine(loss_terms(pred, batch), trainer.weights)
+        trainer.optimizer.zero_grad(set_to_none=True)
+        loss.backward(inputs=inputs)
+        return [p.grad.clone() for p in params]
+
+    plain = gradients(None)
+    only = gradients(trainer.trained_parameters)
+    assert all(torch.equal(a, b) for a, b in zip(plain, only, strict=True))
+    assert any(float(g.abs().max()) > 0 for g in only)

@@ -142,6 +142,8 @@ class Trainer:
         torch.manual_seed(t["seed"])
         self.model = EMLP(self.model_config).to(self.dtype)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=t["lr"], eps=t["adam_eps"])
+        #: what the loss is differentiated with respect to (:meth:`_train_epoch`)
+        self.trained_parameters = [p for g in self.optimizer.param_groups for p in g["params"]]
         self.batch_size = t["batch_size"]
         self.steps_per_epoch = len(self._epoch_batches(0))
         decay_steps = max(1e-12, self.steps_per_epoch * float(t["decay_epochs"]))
@@ -383,7 +385,12 @@ class Trainer:
             gcounts = dict(zip(TERMS, counts.to(pred["forces"].dtype), strict=True))
             loss = combine(terms, self.weights, gcounts) * self.world
             self.optimizer.zero_grad(set_to_none=True)
-            loss.backward()
+            # the parameters only: a plain backward() also differentiates the loss with respect
+            # to the positions (a leaf of the force computation), the second derivatives of the
+            # whole energy, electrostatics included, that nothing uses (identical gradients;
+            # the study's model, 1 thread, 8 alternated blocks: median 0.112 -> 0.101 s CPU per
+            # step)
+            loss.backward(inputs=self.trained_parameters)
             self.optimizer.step()
             self.scheduler.step()
             self.step += 1
