@@ -3,10 +3,13 @@
 memory kept in the heap (``emlpack.heap.reused_heap``, what ``Trainer.train`` does) and
 without (glibc's defaults).
 
-The two settings alternate block by block in one process (the machine is shared, so only
+The settings alternate block by block in one process (the machine is shared, so only
 ratios measured this way are meaningful); each block takes the same batches. Before timing,
-one step's loss gradients are computed under both settings from the same state and compared
+one step's loss gradients are computed under every setting from the same state and compared
 (they must be identical: the setting only changes where memory comes from).
+
+The third setting, the kept heap with the plain ``backward()`` (the loss also differentiated
+in the positions, as before 2026-11-28), measures the parameters-only backward.
 
 Usage: OMP_NUM_THREADS=1 python benchmarks/training.py --json training.json
        [--data datasets/mini-eqm7] [--steps 40] [--repeats 6]
@@ -57,34 +60,40 @@ def main() -> None:
         model = trainer.model
         model.train()
 
-        def gradients(batch) -> list[torch.Tensor]:
+        def gradients(batch, every_leaf: bool = False) -> list[torch.Tensor]:
             loss = combine(loss_terms(predict(model, batch, trainer.reference), batch),
                            trainer.weights)
             trainer.optimizer.zero_grad(set_to_none=True)
-            loss.backward(inputs=trainer.trained_parameters)  # as Trainer._train_epoch
+            # as Trainer._train_epoch; every_leaf: the plain backward() used before 2026-11-28
+            loss.backward(inputs=None if every_leaf else trainer.trained_parameters)
             return [p.grad.clone() for p in model.parameters()]
 
         plain = gradients(batches[0])
         with reused_heap():
             reused = gradients(batches[0])
-        identical = all(torch.equal(a, b) for a, b in zip(plain, reused, strict=True))
+            leaves = gradients(batches[0], every_leaf=True)
+        identical = all(torch.equal(a, b) and torch.equal(a, c)
+                        for a, b, c in zip(plain, reused, leaves, strict=True))
 
-        def step(batch) -> None:
-            gradients(batch)
+        def step(batch, every_leaf: bool = False) -> None:
+            gradients(batch, every_leaf)
             trainer.optimizer.step()
 
         for b in batches[:5]:  # warm-up
             step(b)
         timed = batches[5:]
-        runs: dict[str, list[dict]] = {"plain": [], "reused_heap": []}
+        # "reused_heap_every_leaf": the kept heap with the plain backward() (the gradient in
+        # the positions too), to measure the parameters-only backward
+        runs: dict[str, list[dict]] = {"plain": [], "reused_heap": [],
+                                       "reused_heap_every_leaf": []}
         for _ in range(args.repeats):
             for name in runs:
-                ctx = reused_heap() if name == "reused_heap" else contextlib.nullcontext()
+                ctx = reused_heap() if name != "plain" else contextlib.nullcontext()
                 with ctx:
                     r0 = resource.getrusage(resource.RUSAGE_SELF)
                     c0, w0 = time.process_time(), time.perf_counter()
                     for b in timed:
-                        step(b)
+                        step(b, every_leaf=name == "reused_heap_every_leaf")
                     c1, w1 = time.process_time(), time.perf_counter()
                     r1 = resource.getrusage(resource.RUSAGE_SELF)
                 n = len(timed)
@@ -96,16 +105,22 @@ def main() -> None:
                for name, rows in runs.items()}
     ratio = {k: summary["reused_heap"][k] / summary["plain"][k]
              for k in ("cpu_s_per_step", "wall_s_per_step")}
+    ratio_leaves = {k: summary["reused_heap"][k] / summary["reused_heap_every_leaf"][k]
+                    for k in ("cpu_s_per_step", "wall_s_per_step")}
     result = {"benchmark": "training step", "data": args.data,
               "particles_per_batch": statistics.mean(b.graph.positions.shape[0] for b in timed),
               "edges_per_batch": statistics.mean(b.graph.edge_i.shape[0] for b in timed),
               "identical_gradients": identical, "median": summary,
-              "ratio_reused_over_plain": ratio, "runs": runs, "machine": machine_info()}
+              "ratio_reused_over_plain": ratio,
+              "ratio_parameters_only_over_every_leaf": ratio_leaves, "runs": runs,
+              "machine": machine_info()}
     for name, s in summary.items():
         print(f"{name:12s} CPU {s['cpu_s_per_step']:.4f} s/step, wall {s['wall_s_per_step']:.4f}"
               f" s/step, {s['minor_faults_per_step']:.0f} minor faults/step")
     print(f"reused/plain: CPU {ratio['cpu_s_per_step']:.3f}, wall {ratio['wall_s_per_step']:.3f};"
           f" identical gradients: {identical}")
+    print(f"parameters-only/every-leaf backward: CPU {ratio_leaves['cpu_s_per_step']:.3f},"
+          f" wall {ratio_leaves['wall_s_per_step']:.3f}")
     if args.json:
         write_json(args.json, result)
 

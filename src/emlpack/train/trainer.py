@@ -388,8 +388,7 @@ class Trainer:
             # the parameters only: a plain backward() also differentiates the loss with respect
             # to the positions (a leaf of the force computation), the second derivatives of the
             # whole energy, electrostatics included, that nothing uses (identical gradients;
-            # the study's model, 1 thread, 8 alternated blocks: median 0.112 -> 0.101 s CPU per
-            # step)
+            # benchmarks/training.py, the study's model, 1 thread: 1-5 % less CPU per step)
             loss.backward(inputs=self.trained_parameters)
             self.optimizer.step()
             self.scheduler.step()
