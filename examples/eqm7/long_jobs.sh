@@ -15,8 +15,11 @@
 # train, config.yaml's schedule) in two training processes, seeds 0, 2 and seeds 1, 3, with the
 # augmented models first, beside the references. Snapshots are committed every 30 minutes to
 # examples/eqm7/snapshots/final.
-# Phase 3 starts when both training processes have ended. The references still to compute are
-# split between two processes (alternate molecules of the card's order), one per core.
+# Phase 2b starts when all 8 models have finished: run_study.py evaluate polarizability md
+# table (results in runs/eqm7/results, not committed: a session reviews them) in one process,
+# beside the references.
+# Phase 3 starts when that has ended. The references still to compute are split between two
+# processes (alternate molecules of the card's order), one per core.
 # A watcher moves from one phase to the next as the jobs end, without waiting for a session.
 #
 # Each job runs on its own copy of src/ (/tmp/emlp-JOB), so editing the code does not change a
@@ -33,6 +36,7 @@ fi
 DATA=datasets/mini-eqm7
 PIDS=runs/long_jobs
 FINAL_SNAPSHOTS=examples/eqm7/snapshots/final
+WORK=runs/eqm7  # config.yaml's workdir: the final models and their evaluations
 LC=runs/eqm7-lc
 mkdir -p "$PIDS"
 
@@ -131,6 +135,24 @@ start_final() {  # the final study's models, two processes
   done
 }
 
+final_trained() {  # every final model has finished (run_study.py train writes done.json)
+  local g k
+  for g in aug noaug; do
+    for k in 0 1 2 3; do
+      [ -f "$WORK/models/$g/seed$k/done.json" ] || return 1
+    done
+  done
+}
+
+start_study_eval() {  # phase 2b: the model stages that need no Hessian, beside the references
+  running study-eval && return 0
+  code_copy study-eval
+  PYTHONPATH=/tmp/emlp-study-eval/src OMP_NUM_THREADS=1 nohup "$PY" examples/eqm7/run_study.py \
+    evaluate polarizability md table results_dir=$WORK/results >> runs/study-eval.log 2>&1 &
+  echo $! > "$PIDS/study-eval.pid"
+  echo "final models' evaluation (no IR): PID $!, log runs/study-eval.log, results in $WORK/results"
+}
+
 stop_job() {
   if running "$1"; then
     kill "$(cat "$PIDS/$1.pid")" && echo "$1: stopping (it saves and commits its finished work)"
@@ -146,6 +168,9 @@ watch() {  # phase 1 -> 2 -> 3 as the jobs end
   fi
   start_final
   while running final-0 || running final-1; do sleep 60; done
+  final_trained || return 0  # a training stopped short: a session looks
+  start_study_eval
+  while running study-eval; do sleep 60; done
   split_references
 }
 
@@ -171,12 +196,12 @@ case "${1:-start}" in
     watch
     ;;
   stop)
-    for job in watcher campaign references references-a references-b noaug-10x final-0 final-1; do
+    for job in watcher campaign references references-a references-b noaug-10x final-0 final-1 study-eval; do
       stop_job "$job"
     done
     ;;
   status)
-    for job in campaign references references-a references-b noaug-10x final-0 final-1 watcher; do
+    for job in campaign references references-a references-b noaug-10x final-0 final-1 study-eval watcher; do
       if running "$job"; then echo "$job: running (PID $(cat "$PIDS/$job.pid"))"; else echo "$job: -"; fi
     done
     PYTHONPATH=src "$PY" -c "
