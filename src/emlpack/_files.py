@@ -25,9 +25,12 @@ import os
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 __all__ = [
     "atomic_path",
@@ -104,7 +107,9 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     write_bytes_atomic(path, text.encode())
 
 
-def write_json_atomic(path: str | os.PathLike, data: Any, default=None) -> None:
+def write_json_atomic(
+    path: str | os.PathLike, data: Any, default: Callable[[Any], Any] | None = None
+) -> None:
     """JSON (indent 1, trailing newline) written atomically; ``default`` as in
     :func:`json.dumps` (for values JSON does not know)."""
     write_text_atomic(path, json.dumps(data, indent=1, default=default) + "\n")
@@ -117,7 +122,7 @@ def write_npz_atomic(path: str | os.PathLike, compressed: bool = False, **arrays
     atomic_write(path, lambda fh: save(fh, **arrays), binary=True)
 
 
-def write_figure_atomic(path: str | os.PathLike, figure, dpi: int = 120) -> None:
+def write_figure_atomic(path: str | os.PathLike, figure: Figure, dpi: int = 120) -> None:
     """Save a matplotlib ``figure`` to ``path`` atomically, in the format of its suffix
     (``.png`` when it has none)."""
     fmt = Path(path).suffix.lstrip(".").lower() or "png"

@@ -23,12 +23,14 @@ BOND_FACTOR = 1.2
 BROKEN_FACTOR = 1.5
 
 
-def _distances(positions) -> np.ndarray:
+def _distances(positions: np.ndarray) -> np.ndarray:
     pos = np.asarray(positions, dtype=float).reshape(-1, 3)
     return np.linalg.norm(pos[:, None, :] - pos[None, :, :], axis=-1)
 
 
-def bonds(numbers, positions, factor: float = BOND_FACTOR) -> set[tuple[int, int]]:
+def bonds(
+    numbers: np.ndarray, positions: np.ndarray, factor: float = BOND_FACTOR
+) -> set[tuple[int, int]]:
     """Pairs ``(i, j)``, ``i < j``, closer than ``factor`` x the covalent-radius sum (Å)."""
     r = covalent_radii[np.asarray(numbers, dtype=int)]
     d = _distances(positions)
@@ -36,7 +38,9 @@ def bonds(numbers, positions, factor: float = BOND_FACTOR) -> set[tuple[int, int
     return {(int(a), int(b)) for a, b in zip(i, j, strict=True)}
 
 
-def bonding_changes(numbers, reference_positions, positions) -> list[str]:
+def bonding_changes(
+    numbers: np.ndarray, reference_positions: np.ndarray, positions: np.ndarray
+) -> list[str]:
     """Bonds of ``reference_positions`` broken and bonds formed in ``positions`` (Å), as
     readable lines such as ``"bond C0-O1 broken (1.21 -> 1.90 Å)"``; empty when unchanged."""
     numbers = np.asarray(numbers, dtype=int)
@@ -57,7 +61,7 @@ def bonding_changes(numbers, reference_positions, positions) -> list[str]:
     return out
 
 
-def largest_molecule(numbers, positions) -> int:
+def largest_molecule(numbers: np.ndarray, positions: np.ndarray) -> int:
     """Heavy atoms (Z > 1) of the largest covalently bonded molecule among the atoms (Å
     positions; bonds as :func:`bonds`): 4 for propanal (C3H6O), and for a dimer of propanal
     and water too; 0 without heavy atoms."""

@@ -17,13 +17,25 @@ from __future__ import annotations
 
 import math
 from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.linalg
 from ase.geometry import find_mic
 
+if TYPE_CHECKING:
+    from typing import TypeVar
 
-def minimum_image(vectors, cell=None, pbc=None) -> np.ndarray:
+    import torch
+    from numpy.typing import ArrayLike
+
+    #: a numpy array or a torch tensor, the same type in and out
+    _ArrayT = TypeVar("_ArrayT", np.ndarray, torch.Tensor)
+
+
+def minimum_image(
+    vectors: ArrayLike, cell: ArrayLike | None = None, pbc: ArrayLike | None = None
+) -> np.ndarray:
     """Shortest periodic images of ``vectors`` (Å), shape (..., 3); unchanged without PBC.
 
     ``cell`` rows are the lattice vectors (Å); ``pbc`` three booleans (default: all periodic
@@ -39,7 +51,9 @@ def minimum_image(vectors, cell=None, pbc=None) -> np.ndarray:
     return mic.reshape(v.shape)
 
 
-def minimum_image_distances(points, centres, cell=None, pbc=False) -> np.ndarray:
+def minimum_image_distances(
+    points: ArrayLike, centres: ArrayLike, cell: ArrayLike | None = None, pbc: ArrayLike = False
+) -> np.ndarray:
     """Distances (Å) between every point and every centre, shape (n_points, n_centres):
     to the nearest periodic image of the centre under ``pbc`` (``cell`` rows, Å)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -51,7 +65,9 @@ def minimum_image_distances(points, centres, cell=None, pbc=False) -> np.ndarray
     return np.linalg.norm(diff, axis=-1)
 
 
-def nearest_cores(pairs, cores, cell=None, pbc=None) -> np.ndarray:
+def nearest_cores(
+    pairs: ArrayLike, cores: ArrayLike, cell: ArrayLike | None = None, pbc: ArrayLike | None = None
+) -> np.ndarray:
     """Index of the nearest core of every pair (minimum image under PBC), shape (n_pairs,)."""
     pairs = np.asarray(pairs, dtype=float).reshape(-1, 3)
     cores = np.asarray(cores, dtype=float).reshape(-1, 3)
@@ -59,8 +75,9 @@ def nearest_cores(pairs, cores, cell=None, pbc=None) -> np.ndarray:
     return np.argmin(np.linalg.norm(d, axis=-1), axis=1)
 
 
-def carry_pairs(pairs, old_cores, new_cores, old_cell=None, new_cell=None,
-                pbc=None) -> np.ndarray:
+def carry_pairs(pairs: ArrayLike, old_cores: ArrayLike, new_cores: ArrayLike,
+                old_cell: ArrayLike | None = None, new_cell: ArrayLike | None = None,
+                pbc: ArrayLike | None = None) -> np.ndarray:
     """Electron pairs (Å) moved rigidly with their nearest core from ``old_cores`` to
     ``new_cores``; with cells, first affinely with the cell (same fractional coordinates).
 
@@ -90,7 +107,7 @@ for _k, (_i, _j) in enumerate(VOIGT):
 STRAIN_BASIS.flags.writeable = False
 
 
-def voigt_strain(voigt_vector) -> np.ndarray:
+def voigt_strain(voigt_vector: ArrayLike) -> np.ndarray:
     """Symmetric 3x3 strain ``eps = sum_J S_J B_J`` of a Voigt vector (engineering shear);
     a cell deforms as ``A -> A (I + eps)`` (rows = lattice vectors)."""
     return np.einsum("k,kij->ij", np.asarray(voigt_vector, dtype=float), STRAIN_BASIS)
@@ -150,7 +167,8 @@ class VoigtViews:
 
 
 # ---------------------------------------------------------------------- rigid-body projection
-def rigid_body_modes(positions, masses=None, rotations: bool = True, cell=None,
+def rigid_body_modes(positions: ArrayLike, masses: ArrayLike | None = None,
+                     rotations: bool = True, cell: ArrayLike | None = None,
                      rtol: float = 1e-6) -> np.ndarray:
     """Orthonormal columns spanning the rigid translations (and rotations) of particles at
     ``positions`` (N, 3), in the flattened 3N coordinates.
@@ -182,8 +200,8 @@ def internal_basis(rigid: np.ndarray) -> np.ndarray:
     return scipy.linalg.null_space(np.asarray(rigid).T)
 
 
-def normal_modes(hessian, positions, masses, project: bool = True
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def normal_modes(hessian: ArrayLike, positions: ArrayLike, masses: ArrayLike,
+                 project: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Vibrational modes of a Cartesian Hessian (eV/Å²) of particles with ``masses`` (amu).
 
     Returns ``(k, modes)``: mass-weighted force constants ``omega^2`` (eV/(Å² amu)),
@@ -206,7 +224,8 @@ def normal_modes(hessian, positions, masses, project: bool = True
     return w[keep], v[:, keep]
 
 
-def schur_complement(hessian, keep, eliminate, basis: np.ndarray | None = None) -> np.ndarray:
+def schur_complement(hessian: ArrayLike, keep: np.ndarray, eliminate: np.ndarray,
+                     basis: np.ndarray | None = None) -> np.ndarray:
     """``H_kk - H_ke B (B^T H_ee B)^-1 B^T H_ek``: second derivatives in ``keep`` with the
     ``eliminate`` variables relaxed within the span of ``basis`` (columns; default: all)."""
     h = np.asarray(hessian, dtype=float)
@@ -221,7 +240,7 @@ def schur_complement(hessian, keep, eliminate, basis: np.ndarray | None = None) 
 
 
 # ---------------------------------------------------------------------- cutoff
-def cosine_cutoff(r, cutoff: float, transition: float, xp: ModuleType = np):
+def cosine_cutoff(r: _ArrayT, cutoff: float, transition: float, xp: ModuleType = np) -> _ArrayT:
     """1 below ``cutoff - transition``, ``(1 + cos(pi x)) / 2`` with
     ``x = (r - cutoff + transition) / transition`` up to ``cutoff``, 0 beyond (Å).
 

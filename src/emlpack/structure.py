@@ -14,10 +14,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from dataclasses import field as _field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from emlpack.errors import EmlpackError
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 PAIR_CHARGE = -2.0
 #: Particle number used for electron pairs (the reference's "Es", Z = 99).
@@ -188,7 +192,7 @@ class Structure:
             )
 
 
-def _as_array(value, shape: tuple[int, ...], name: str, where: str) -> np.ndarray:
+def _as_array(value: ArrayLike, shape: tuple[int, ...], name: str, where: str) -> np.ndarray:
     try:
         arr = np.asarray(value, dtype=np.float64)
         if shape[0] == -1 and arr.size == 0:

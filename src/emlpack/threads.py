@@ -24,6 +24,10 @@ torch is imported), so :func:`configure_thread_environment` must run before that
 from __future__ import annotations
 
 import os
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from collections.abc import MutableMapping
 
 #: threads used when nothing is requested (a few cores help batched evaluations; more
 #: rarely do for the eMLP's small matrices)
@@ -36,7 +40,9 @@ def default_threads(cpu_count: int | None = None) -> int:
     return max(1, min(n, DEFAULT_MAX_THREADS))
 
 
-def configure_thread_environment(threads: int | None = None, environ=None) -> int:
+def configure_thread_environment(
+    threads: int | None = None, environ: MutableMapping[str, str] | None = None
+) -> int:
     """Set ``OMP_WAIT_POLICY=PASSIVE`` and ``OMP_NUM_THREADS`` in ``environ`` (default
     ``os.environ``) unless the user already set them; an explicit ``threads`` always sets
     ``OMP_NUM_THREADS``. Returns the thread count in effect. Call before importing torch."""
@@ -51,7 +57,9 @@ def configure_thread_environment(threads: int | None = None, environ=None) -> in
     return int(env["OMP_NUM_THREADS"])
 
 
-def configure_openblas_coretype(environ=None, cpuinfo: str = "/proc/cpuinfo") -> str | None:
+def configure_openblas_coretype(
+    environ: MutableMapping[str, str] | None = None, cpuinfo: str = "/proc/cpuinfo"
+) -> str | None:
     """Ask OpenBLAS for its AVX2 kernels (``OPENBLAS_CORETYPE=Haswell``) on a CPU with AVX2
     and FMA, unless the user chose a core type; returns the core type in effect (``None``:
     OpenBLAS's own detection). Call before importing PySCF: OpenBLAS reads it when loaded.

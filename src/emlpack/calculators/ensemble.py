@@ -21,6 +21,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -33,6 +34,8 @@ from emlpack.data.references import (
 from emlpack.errors import EmlpackError
 from emlpack.nn.checkpoint import load_model, read_checkpoint
 from emlpack.nn.potential import EMLP, for_evaluation
+
+_T = TypeVar("_T")
 
 
 class EnsembleError(EmlpackError, ValueError):
@@ -73,14 +76,15 @@ class ModelMember:
             self._hydride_delta = self.reference.energies - u
         return self._hydride_delta
 
-    def dft_shift(self, numbers, charge: float = 0.0) -> float:
+    def dft_shift(self, numbers: np.ndarray | Sequence[int], charge: float = 0.0) -> float:
         """Energy (eV) added to the model energy to put it on the DFT scale (0 without one)."""
         delta = self.hydride_delta()
         if delta is None:
             return 0.0
         return float(hydride_coefficients(np.asarray(numbers), self.source, charge) @ delta)
 
-    def relative_shift(self, numbers, charge: float = 0.0) -> float:
+    def relative_shift(self, numbers: np.ndarray | Sequence[int],
+                       charge: float = 0.0) -> float:
         """Energy (eV) added to the model energy to give the trained (relative) scale."""
         delta = self.hydride_delta()
         if delta is None:
@@ -146,7 +150,8 @@ class ModelEnsemble:
         sizes = [m.max_heavy_atoms for m in self.members if m.max_heavy_atoms is not None]
         return min(sizes) if sizes else None
 
-    def domain_warnings(self, numbers, positions, periodic: bool = False) -> list[str]:
+    def domain_warnings(self, numbers: np.ndarray | Sequence[int], positions: np.ndarray,
+                        periodic: bool = False) -> list[str]:
         """Warnings for a structure (atomic numbers, core positions in Å) outside what the
         members were trained on: elements outside the training set, and a molecule with more
         heavy atoms than the largest training molecule (:func:`emlpack.bonding.
@@ -167,7 +172,7 @@ class ModelEnsemble:
                            " them")
         return out
 
-    def unknown_elements(self, numbers) -> list[int]:
+    def unknown_elements(self, numbers: np.ndarray | Sequence[int]) -> list[int]:
         """Atomic numbers in ``numbers`` outside the training set (empty when unknown)."""
         known = self.elements
         if known is None:
@@ -181,7 +186,11 @@ class ModelEnsemble:
         return ModelEnsemble(out, self.name)
 
 
-def as_ensemble(model, dtype: torch.dtype = torch.float64) -> ModelEnsemble:
+def as_ensemble(
+    model: EMLP | ModelMember | ModelEnsemble | str | Path
+    | Sequence[EMLP | ModelMember | ModelEnsemble | str | Path],
+    dtype: torch.dtype = torch.float64,
+) -> ModelEnsemble:
     """An :class:`EMLP`, checkpoint path, pretrained name, folder, list of those, or an
     ensemble, as a :class:`ModelEnsemble` in ``dtype``."""
     if isinstance(model, ModelEnsemble):
@@ -203,7 +212,8 @@ def as_ensemble(model, dtype: torch.dtype = torch.float64) -> ModelEnsemble:
     raise EnsembleError(f"cannot use {type(model).__name__} as a model")
 
 
-def load_pretrained(name: str, dtype: torch.dtype = torch.float64, root: Path | None = None):
+def load_pretrained(name: str, dtype: torch.dtype = torch.float64,
+                    root: Path | None = None) -> ModelEnsemble:
     """The pretrained ensemble ``name`` (see :mod:`emlpack.pretrained`) as a
     :class:`ModelEnsemble` in ``dtype``."""
     from emlpack.pretrained import resolve_model
@@ -213,7 +223,7 @@ def load_pretrained(name: str, dtype: torch.dtype = torch.float64, root: Path | 
 
 
 # ------------------------------------------------------------------ statistics over members
-def member_mean(objects: Sequence):
+def member_mean(objects: Sequence[_T]) -> _T:
     """The field-wise mean of dataclass results of the members (arrays and floats averaged,
     ``None`` kept), an object of the same type: e.g. the ensemble's polarizability tensor."""
     import dataclasses

@@ -16,10 +16,20 @@ import sys
 import time
 import zipfile
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from emlpack.errors import InputError, ModelFileError
+
+if TYPE_CHECKING:
+    from collections.abc import Collection, Sequence
+
+    from ase import Atoms
+
+    from emlpack.calculators.ensemble import ModelMember
+    from emlpack.nn.potential import EMLP
+    from emlpack.structure import Structure
 
 #: a field above this (V/Å; about 0.02 au, twice the training range) needs ``--force``
 MAX_FIELD_V_PER_A = 1.0
@@ -32,7 +42,7 @@ ZIP_MAGIC = b"PK\x03\x04"
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """Shows ``(default: X)`` for every option with a meaningful default."""
 
-    def _get_help_string(self, action):
+    def _get_help_string(self, action: argparse.Action) -> str | None:
         text = action.help or ""
         if (action.default is None or action.default is False
                 or action.default == argparse.SUPPRESS or "default" in text):
@@ -40,8 +50,14 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
-def add_parser(sub, name: str, help: str, description: str | None = None,
-               threads: bool = True, threads_default: int | None = None):
+#: ``sub`` of every ``add_*`` command function: what ``ArgumentParser.add_subparsers()``
+#: returns (its class, argparse._SubParsersAction, is private to argparse)
+Subparsers = Any
+
+
+def add_parser(sub: Subparsers, name: str, help: str, description: str | None = None,
+               threads: bool = True,
+               threads_default: int | None = None) -> argparse.ArgumentParser:
     """A sub-command parser with defaults in ``--help``, ``--debug`` and ``--threads`` (the
     threads of this process and of the processes it starts: ``emlp`` sets ``OMP_NUM_THREADS``
     from it before torch or PySCF is imported; ``threads=False`` for a command group whose
@@ -78,7 +94,7 @@ def _pretrained_names() -> str:
     return ", ".join(available()) or "none installed"
 
 
-def add_model_argument(p, ensemble: bool = True) -> None:
+def add_model_argument(p: argparse.ArgumentParser, ensemble: bool = True) -> None:
     """The MODEL argument; ``ensemble=False`` for the commands that take one model."""
     known = _pretrained_names()
     if ensemble:
@@ -90,7 +106,7 @@ def add_model_argument(p, ensemble: bool = True) -> None:
     p.add_argument("model", help=text)
 
 
-def add_structure_arguments(p) -> None:
+def add_structure_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("structure", nargs="?",
                    help="xyz/extxyz file; electron pairs as Es rows (guessed when absent)")
     p.add_argument("--smiles", help="a molecule from SMILES instead of a file (RDKit 3D"
@@ -103,7 +119,7 @@ def add_structure_arguments(p) -> None:
                    help="electron-pair guess when the input has none")
 
 
-def add_field_arguments(p) -> None:
+def add_field_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--field", type=float, nargs=3, metavar=("EX", "EY", "EZ"),
                    help="homogeneous field, V/Å (default: the structure file's, else zero)")
@@ -113,13 +129,13 @@ def add_field_arguments(p) -> None:
                    help=f"accept a field above {MAX_FIELD_V_PER_A:g} V/Å (outside training)")
 
 
-def add_threads_argument(p, default: int | None = None) -> None:
+def add_threads_argument(p: argparse.ArgumentParser, default: int | None = None) -> None:
     p.add_argument("--threads", type=int, default=default,
                    help="threads (torch, PySCF)" + ("" if default else " (default: min(cores,"
                    " 4) unless OMP_NUM_THREADS is set; idle threads wait passively)"))
 
 
-def add_quiet_argument(p) -> None:
+def add_quiet_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress messages")
 
 
@@ -133,7 +149,7 @@ def set_threads(n: int | None) -> None:
     apply_threads(n)
 
 
-def positive(value, name: str, allow_zero: bool = False) -> None:
+def positive(value: float | None, name: str, allow_zero: bool = False) -> None:
     """Refuse a run length, time step or count that is not positive (or negative)."""
     if value is None:
         return
@@ -143,7 +159,7 @@ def positive(value, name: str, allow_zero: bool = False) -> None:
         raise InputError(f"{name} must be {need}, got {value:g}")
 
 
-def settings(args) -> dict:
+def settings(args: argparse.Namespace) -> dict:
     """The resolved command-line settings (saved beside every output)."""
     from emlpack import __version__
 
@@ -159,7 +175,7 @@ def write_json(path: str | Path, data: dict) -> None:
     atomic_write(Path(path), lambda fh: json.dump(data, fh, indent=1, default=_jsonable))
 
 
-def _jsonable(obj):
+def _jsonable(obj: object) -> Any:
     if hasattr(obj, "tolist"):
         return obj.tolist()
     return str(obj)
@@ -239,7 +255,7 @@ def load_members(name_or_path: str) -> list:
     return members
 
 
-def load_member(name_or_path: str, command: str = "this command"):
+def load_member(name_or_path: str, command: str = "this command") -> ModelMember:
     """The one :class:`emlpack.calculators.ensemble.ModelMember` of a MODEL argument, for the
     commands that evaluate a single model (an ensemble is refused with one line)."""
     files, label = model_files(name_or_path)
@@ -252,12 +268,12 @@ def load_member(name_or_path: str, command: str = "this command"):
     return load_members(str(files[0]))[0]
 
 
-def load_model(name_or_path: str):
+def load_model(name_or_path: str) -> EMLP:
     """The float64 :class:`EMLP` of a MODEL argument (see :func:`load_member`)."""
     return load_member(name_or_path).model
 
 
-def energy_record(member, structure, model_energy: float) -> dict:
+def energy_record(member: ModelMember, structure: Structure, model_energy: float) -> dict:
     """Energies for a JSON output: ``energy_eV`` on the DFT scale when the checkpoint holds its
     DFT hydride references (neutral molecules), else the model's own; with the scale named
     and the relative and raw model energies beside it (see docs/pretrained.md)."""
@@ -271,12 +287,12 @@ def energy_record(member, structure, model_energy: float) -> dict:
     return out
 
 
-def model_elements(model) -> tuple[int, ...]:
+def model_elements(model: EMLP) -> tuple[int, ...]:
     return tuple(int(z) for z in model.config.elements)
 
 
 # --------------------------------------------------------------------------- structures
-def read_input_atoms(args) -> tuple:
+def read_input_atoms(args: argparse.Namespace) -> tuple[Atoms, str]:
     """``(atoms, where)``: the raw input frame (``Es`` rows kept) from the file or ``--smiles``;
     ``where`` names file and frame for every later message."""
     smiles = getattr(args, "smiles", None)
@@ -320,7 +336,7 @@ def one_line_text(exc: BaseException) -> str:
     return text or type(exc).__name__
 
 
-def check_atoms(atoms, where: str, elements, periodic: bool | None = None,
+def check_atoms(atoms: Atoms, where: str, elements: Collection[int], periodic: bool | None = None,
                 command: str = "") -> None:
     """The cheap checks on the raw frame: elements the model knows, pbc and cell consistent,
     periodicity the command needs, no cores closer than :data:`MIN_CORE_DISTANCE`."""
@@ -372,7 +388,8 @@ def check_atoms(atoms, where: str, elements, periodic: bool | None = None,
                 f" {MIN_CORE_DISTANCE:g} Å)")
 
 
-def read_structure(args, model, log: Log, periodic: bool | None = None, command: str = ""):
+def read_structure(args: argparse.Namespace, model: EMLP, log: Log, periodic: bool | None = None,
+                   command: str = "") -> tuple[Structure, str]:
     """The input structure of a command, checked cheaply first, then pairs guessed if needed.
 
     Returns ``(structure, where)``. The field is applied separately (:func:`apply_field`).
@@ -410,7 +427,7 @@ def read_structure(args, model, log: Log, periodic: bool | None = None, command:
                               source=f"{where} (guessed pairs)"), where
 
 
-def _file_field(atoms, where: str):
+def _file_field(atoms: Atoms, where: str) -> np.ndarray | None:
     from emlpack.units import FIELD_AU_IN_V_PER_A
 
     if "external_field" in atoms.info:
@@ -420,7 +437,7 @@ def _file_field(atoms, where: str):
     return None
 
 
-def requested_field(args) -> np.ndarray | None:
+def requested_field(args: argparse.Namespace) -> np.ndarray | None:
     """The field (V/Å) of ``--field``/``--field-au``, or None."""
     from emlpack.units import FIELD_AU_IN_V_PER_A
 
@@ -431,7 +448,8 @@ def requested_field(args) -> np.ndarray | None:
     return None
 
 
-def check_field(field, args, where: str) -> None:
+def check_field(field: np.ndarray | Sequence[float] | None, args: argparse.Namespace,
+                where: str) -> None:
     """Refuse a non-finite field, or one above :data:`MAX_FIELD_V_PER_A` without ``--force``."""
     if field is None:
         return
@@ -445,7 +463,8 @@ def check_field(field, args, where: str) -> None:
             " 0.02 au, twice the training range); pass --force to use it anyway")
 
 
-def apply_field(s, args, where: str, log: Log):
+def apply_field(s: Structure, args: argparse.Namespace, where: str,
+                log: Log) -> tuple[Structure, dict]:
     """The structure with ``--field``/``--field-au`` applied (else the file's field), checked
     and printed; returns ``(structure, info)`` with ``info`` for the JSON output."""
     requested = requested_field(args)

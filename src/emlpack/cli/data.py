@@ -4,11 +4,16 @@ itself (one line, exit 2)."""
 
 from __future__ import annotations
 
-from emlpack.cli.common import add_parser, positive
+from typing import TYPE_CHECKING
+
+from emlpack.cli.common import Subparsers, add_parser, positive
 from emlpack.errors import InputError
 
+if TYPE_CHECKING:
+    import argparse
 
-def add_label(sub) -> None:
+
+def add_label(sub: Subparsers) -> None:
     p = add_parser(
         sub, "label", help="sample molecules and label them with DFT into an HDF5 store (resumable)"
     )
@@ -28,7 +33,7 @@ def add_label(sub) -> None:
                    metavar="KEY=VALUE",
                    help="recipe override, repeatable (e.g. -s seed=3 -s prepare.optimize=false)")
 
-    def run(args):
+    def run(args: argparse.Namespace):
         from emlpack.data.store import StoreError
         from emlpack.qm.labeling import read_molecules, run_labeling
         from emlpack.qm.recipe import load_recipe
@@ -53,7 +58,7 @@ def add_label(sub) -> None:
     p.set_defaults(func=run, resumable=True)
 
 
-def add_relabel(sub) -> None:
+def add_relabel(sub: Subparsers) -> None:
     p = add_parser(
         sub, "relabel", help="recompute energy, forces and Foster-Boys centres of an extxyz file"
     )
@@ -68,7 +73,7 @@ def add_relabel(sub) -> None:
     p.add_argument("--scheduler", help="address of an existing Dask scheduler")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
-    def run(args):
+    def run(args: argparse.Namespace):
         from emlpack.qm.relabel import relabel
 
         positive(args.boys_starts, "--boys-starts")
@@ -85,7 +90,7 @@ def add_relabel(sub) -> None:
     p.set_defaults(func=run)
 
 
-def add_convert_reference(sub) -> None:
+def add_convert_reference(sub: Subparsers) -> None:
     p = add_parser(
         sub, "convert-reference",
         help="convert a TensorFlow checkpoint of the authors' reference code (no TF needed)",
@@ -93,7 +98,7 @@ def add_convert_reference(sub) -> None:
     p.add_argument("prefix", help="checkpoint prefix, e.g. models/eQM7_aug1 (.index/.data/.pickle)")
     p.add_argument("-o", "--output", required=True, help="emlpack model file to write (.pt)")
 
-    def run(args):
+    def run(args: argparse.Namespace):
         from emlpack.legacy.reference_weights import model_from_reference
         from emlpack.legacy.tf_checkpoint import read_reference_hparams, read_tf_checkpoint
         from emlpack.nn.checkpoint import save_model
@@ -107,7 +112,7 @@ def add_convert_reference(sub) -> None:
     p.set_defaults(func=run)
 
 
-def add_campaign(sub) -> None:
+def add_campaign(sub: Subparsers) -> None:
     p = add_parser(sub, "campaign", help="a labeling campaign into immutable shards"
                        " (init: molecule list and split; run: label, resumable; card)",
                    threads=False)
@@ -137,7 +142,7 @@ def add_campaign(sub) -> None:
     pc = csub.add_parser("card", help="regenerate README.md from the shards")
     pc.add_argument("folder")
 
-    def run(args):
+    def run(args: argparse.Namespace):
         import logging
 
         from emlpack.data.store import StoreError

@@ -29,11 +29,17 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from ase.build import molecule
 
 from emlpack._files import write_text_atomic
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable, Sequence
+
+    from emlpack.structure import Structure
 
 MOLECULES = ("H2O", "NH3", "CH4")
 HYDRIDE_NAMES = ("H2", "CH4", "NH3", "H2O")
@@ -133,7 +139,7 @@ def demo_config(out: Path, minutes: float) -> dict:
     ])
 
 
-def dipole_table(model_path: Path, structures) -> list[dict]:
+def dipole_table(model_path: Path, structures: Iterable[Structure]) -> list[dict]:
     """Born-Oppenheimer dipoles (ASE calculator, pairs relaxed) against DFT, in Debye."""
     from ase.calculators.calculator import CalculationFailed
 
@@ -204,7 +210,7 @@ def ir_step(out: Path, model: Path, command: Command | None, smiles: str = "O") 
     return step
 
 
-def _formula(numbers) -> str:
+def _formula(numbers: np.ndarray | Sequence[int]) -> str:
     """Hill formula of the cores (e.g. ``H2O``)."""
     from ase.formula import Formula
     from ase.symbols import Symbols

@@ -5,9 +5,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import TYPE_CHECKING
 
 from emlpack.cli.common import (
     Log,
+    Subparsers,
     add_field_arguments,
     add_model_argument,
     add_parser,
@@ -25,8 +27,14 @@ from emlpack.cli.common import (
 )
 from emlpack.errors import InputError
 
+if TYPE_CHECKING:
+    from pathlib import Path
 
-def add_md(sub) -> None:
+    from emlpack.calculators.ensemble import ModelMember
+    from emlpack.structure import Structure
+
+
+def add_md(sub: Subparsers) -> None:
     p = add_parser(sub, "md", "Born-Oppenheimer MD with relaxed electron pairs (NVT/NVE,"
                    " optional field); resumable", threads_default=1)
     add_model_argument(p, ensemble=False)
@@ -58,7 +66,7 @@ def add_md(sub) -> None:
                    " electron pairs (ASE masses, centre of mass, viewers)")
     add_quiet_argument(p)
 
-    def run(args):
+    def run(args: argparse.Namespace):
         from pathlib import Path
 
         from emlpack.bonding import bonding_changes
@@ -130,7 +138,7 @@ def add_md(sub) -> None:
     p.set_defaults(func=run, resumable=True)
 
 
-def _final_energies(member, structure, last) -> dict:
+def _final_energies(member: ModelMember, structure: Structure, last: Structure) -> dict:
     """The last frame's potential and conserved energies for summary.json, on the DFT scale
     when the checkpoint holds hydride references (:func:`energy_record`; the shift is a
     constant of the composition, so the conserved energy moves by the same amount). The
@@ -141,7 +149,7 @@ def _final_energies(member, structure, last) -> dict:
             "final_conserved_energy_eV": float(last.info["conserved_energy"] + shift)}
 
 
-def _write_atoms_only(trajectory, path) -> None:
+def _write_atoms_only(trajectory: Path, path: Path) -> None:
     """The frames of ``trajectory`` without their ``Es`` rows (:func:`emlpack.io.split_pairs`)."""
     import ase.io
 
@@ -156,7 +164,7 @@ def _write_atoms_only(trajectory, path) -> None:
     atomic_write(path, lambda fh: ase.io.write(fh, frames, format="extxyz"))
 
 
-def _add_settings(json_path, args) -> None:
+def _add_settings(json_path: str | None, args: argparse.Namespace) -> None:
     """Add the resolved settings to the JSON output an analysis function wrote."""
     import json
     from pathlib import Path
@@ -167,7 +175,7 @@ def _add_settings(json_path, args) -> None:
         write_json(json_path, data)
 
 
-def _md_log_handlers(folder, quiet: bool):
+def _md_log_handlers(folder: Path, quiet: bool):
     """Send the package's log (the MD driver's progress and watchdog events, the solvers'
     warnings) to ``md.log`` and to stderr (warnings only with --quiet) for the run; returns the
     function that removes the handlers again."""
@@ -194,7 +202,7 @@ def _md_log_handlers(folder, quiet: bool):
     return remove
 
 
-def add_md_analysis(sub) -> None:
+def add_md_analysis(sub: Subparsers) -> None:
     p = add_parser(sub, "md-analysis", "conserved-quantity stability of MD trajectories"
                    " (slope, max jump per atom; the paper's scatter plot)")
     p.add_argument("trajectories", nargs="+", help="extxyz trajectories written by 'emlp md'")
@@ -206,7 +214,7 @@ def add_md_analysis(sub) -> None:
     p.add_argument("--discard", type=int, default=10, help="initial steps discarded")
     p.add_argument("--groups", nargs="+", help="one group name per trajectory (plot colours)")
 
-    def run(args):
+    def run(args: argparse.Namespace):
         from emlpack.dynamics.analysis import run_analysis
 
         positive(args.discard, "--discard", allow_zero=True)
@@ -221,7 +229,7 @@ def add_md_analysis(sub) -> None:
     p.set_defaults(func=run)
 
 
-def add_md_ir(sub) -> None:
+def add_md_ir(sub: Subparsers) -> None:
     p = add_parser(sub, "md-ir", "IR spectrum from the dipole autocorrelation of an MD"
                    " trajectory (JSON, optional PNG)")
     p.add_argument("trajectory", help="extxyz trajectory written by 'emlp md'")
@@ -238,7 +246,7 @@ def add_md_ir(sub) -> None:
                    help="quantum correction factor")
     p.add_argument("--padding", type=int, default=8, help="zero-padding factor")
 
-    def run(args):
+    def run(args: argparse.Namespace):
         from emlpack.dynamics.analysis import run_md_ir
 
         positive(args.temperature, "--temperature")

@@ -9,11 +9,13 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from emlpack.cli.common import (
     Log,
+    Subparsers,
     add_field_arguments,
     add_model_argument,
     add_parser,
@@ -29,12 +31,21 @@ from emlpack.cli.common import (
     write_json,
 )
 
+if TYPE_CHECKING:
+    import argparse
+    from collections.abc import Iterable, Iterator
+
+    from emlpack.calculators.ensemble import ModelMember
+    from emlpack.nn.potential import EMLP
+    from emlpack.structure import Structure
+
 RELAX_LEVELS = ("none", "pairs", "positions", "cell")
 #: warn when the ensemble's isotropic polarizability spread exceeds this fraction of its mean
 POLARIZABILITY_SPREAD_WARNING = 0.1
 
 
-def _common(p, relax_default: str, output_default: str, output_help: str) -> None:
+def _common(p: argparse.ArgumentParser, relax_default: str, output_default: str,
+            output_help: str) -> None:
     add_model_argument(p)
     add_structure_arguments(p)
     p.add_argument("-o", "--output", default=output_default, help=output_help)
@@ -61,8 +72,9 @@ class Prepared:
     is sound (``left_out``: their sources; a warning says so).
     """
 
-    def __init__(self, members, structures, where, field_info, warnings, relax_infos, log,
-                 left_out=(), labels=None):
+    def __init__(self, members: Iterable[ModelMember], structures: Iterable[Structure],
+                 where: str, field_info: dict, warnings: list[str], relax_infos: list[dict],
+                 log: Log, left_out: Iterable[str] = (), labels: list[str] | None = None):
         self.members, self.structures = list(members), list(structures)
         self.where, self.field_info, self.warnings = where, field_info, warnings
         self.relax_infos, self.log = relax_infos, log
@@ -75,22 +87,22 @@ class Prepared:
         return len(self.members) > 1
 
     @property
-    def member(self):
+    def member(self) -> ModelMember:
         return self.members[0]
 
     @property
-    def model(self):
+    def model(self) -> EMLP:
         return self.members[0].model
 
     @property
-    def structure(self):
+    def structure(self) -> Structure:
         return self.structures[0]
 
-    def each(self):
+    def each(self) -> Iterator[tuple[int, ModelMember, Structure]]:
         """``(index, member, structure)`` for every member."""
         return zip(range(len(self.members)), self.members, self.structures, strict=True)
 
-    def record(self, args, data: dict) -> dict:
+    def record(self, args: argparse.Namespace, data: dict) -> dict:
         """``data`` with the field, relaxation, warnings, ensemble and settings added."""
         out = dict(data)
         out["structure"] = self.where
@@ -143,7 +155,7 @@ class Prepared:
         return what
 
 
-def prepare(args, periodic: bool | None, command: str) -> Prepared:
+def prepare(args: argparse.Namespace, periodic: bool | None, command: str) -> Prepared:
     """Cheap checks (arguments, model files, structure, field), then pair guess and relaxation
     (by every member of an ensemble)."""
     from emlpack.calculators.ensemble import ModelEnsemble
@@ -191,7 +203,8 @@ def _broken(info: dict) -> bool:
                 or opt.get("bonding_changes"))
 
 
-def relax(model, s, level: str, args, log: Log, warnings: list[str]):
+def relax(model: EMLP, s: Structure, level: str, args: argparse.Namespace, log: Log,
+          warnings: list[str]) -> tuple[Structure, dict]:
     """Relax ``s`` to ``level``; problems are appended to ``warnings``, never hidden."""
     from emlpack.bonding import bonding_changes
     from emlpack.pairs.relax import relax_pairs
@@ -250,7 +263,7 @@ def relax(model, s, level: str, args, log: Log, warnings: list[str]):
 
 
 # --------------------------------------------------------------------------- commands
-def add_optimize(sub) -> None:
+def add_optimize(sub: Subparsers) -> None:
     p = add_parser(sub, "optimize", "optimise the pairs, positions (and cell) of a structure;"
                    " writes extxyz and a JSON summary")
     _common(p, "positions", "optimized.xyz",
@@ -259,7 +272,7 @@ def add_optimize(sub) -> None:
     p.add_argument("--no-pairs", action="store_true",
                    help="write the atoms only (no Es rows; the pairs stay in the JSON)")
 
-    def run(args):
+    def run(args: argparse.Namespace):
         import ase.io
 
         from emlpack._files import atomic_write
@@ -305,7 +318,7 @@ def add_optimize(sub) -> None:
     p.set_defaults(func=run)
 
 
-def add_ir(sub) -> None:
+def add_ir(sub: Subparsers) -> None:
     p = add_parser(sub, "ir", "harmonic IR spectrum of a molecule (JSON, optional PNG)")
     _common(p, "positions", "ir.json", "JSON file of the spectrum")
     p.add_argument("--plot", metavar="FILE.png", help="PNG plot of the spectrum")
@@ -313,7 +326,7 @@ def add_ir(sub) -> None:
     p.add_argument("--fwhm", type=float, default=10.0, help="Lorentzian FWHM, cm^-1")
     p.add_argument("--reference", help="reference spectrum: text columns cm^-1, km/mol")
 
-    def run(args):
+    def run(args: argparse.Namespace):
         import json
 
         from emlpack.calculators.ensemble import member_spread
@@ -381,17 +394,17 @@ def _read_reference(path: str):
     return table[:, 0], table[:, 1]
 
 
-def argparse_suppress():
+def argparse_suppress() -> str:
     import argparse
 
     return argparse.SUPPRESS
 
 
-def add_polarizability(sub) -> None:
+def add_polarizability(sub: Subparsers) -> None:
     p = add_parser(sub, "polarizability", "dipole and polarizabilities of a molecule (JSON)")
     _common(p, "pairs", "polarizability.json", "JSON file of the dipole and polarizabilities")
 
-    def run(args):
+    def run(args: argparse.Namespace):
         from emlpack.calculators.ensemble import member_mean, member_spread
         from emlpack.properties.response import molecule_response
         from emlpack.units import COULOMB_EV_A, POLARIZABILITY_A3_IN_BOHR3
@@ -432,12 +445,12 @@ def add_polarizability(sub) -> None:
     p.set_defaults(func=run)
 
 
-def add_response(sub) -> None:
+def add_response(sub: Subparsers) -> None:
     p = add_parser(sub, "response", "stiffness, dielectric and piezoelectric tensors of a"
                    " crystal (JSON)")
     _common(p, "positions", "response.json", "JSON file of the tensors")
 
-    def run(args):
+    def run(args: argparse.Namespace):
         from emlpack.calculators.ensemble import member_mean, member_spread
         from emlpack.properties.response import crystal_response
 

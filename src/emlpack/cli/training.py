@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import logging
 import sys
+from typing import TYPE_CHECKING, TextIO
 
-from emlpack.cli.common import add_parser, load_model, model_files, positive
+from emlpack.cli.common import Subparsers, add_parser, load_model, model_files, positive
 from emlpack.errors import InputError
+
+if TYPE_CHECKING:
+    import argparse
 
 
 class _StdoutHandler(logging.StreamHandler):
@@ -18,7 +22,7 @@ class _StdoutHandler(logging.StreamHandler):
         return sys.stdout
 
     @stream.setter
-    def stream(self, value) -> None:
+    def stream(self, value: TextIO) -> None:
         pass
 
 
@@ -33,7 +37,7 @@ def log_to_stdout() -> None:
     logger.setLevel(logging.INFO)
 
 
-def add_train(sub) -> None:
+def add_train(sub: Subparsers) -> None:
     p = add_parser(sub, "train", help="train an eMLP (YAML config + key=value overrides;"
                        " data parallel under torchrun)")
     p.add_argument("config", help="YAML config, e.g. configs/small_cpu.yaml")
@@ -42,7 +46,7 @@ def add_train(sub) -> None:
     p.add_argument("--restart", action="store_true",
                    help="start afresh instead of resuming from <output.dir>/last.pt")
 
-    def run(args):
+    def run(args: argparse.Namespace):
         from emlpack.data.dataset import DataError
         from emlpack.data.references import HydrideReferenceError
         from emlpack.train.config import ConfigError, load_config
@@ -66,7 +70,7 @@ def add_train(sub) -> None:
     p.set_defaults(func=run, resumable=True)
 
 
-def add_evaluate(sub) -> None:
+def add_evaluate(sub: Subparsers) -> None:
     p = add_parser(sub, "evaluate", help="static/dynamic error tables and parity plots of"
                        " trained model(s) (an ensemble gives mean ± std)")
     p.add_argument("paths", nargs="+", metavar="MODEL... DATA",
@@ -79,7 +83,7 @@ def add_evaluate(sub) -> None:
     p.add_argument("--max-structures", type=int, help="evaluate at most this many")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
-    def run(args):
+    def run(args: argparse.Namespace):
         from emlpack.train.evaluate import evaluate_models
 
         log_to_stdout()
@@ -103,11 +107,11 @@ def add_evaluate(sub) -> None:
     p.set_defaults(func=run)
 
 
-def add_demo(sub) -> None:
+def add_demo(sub: Subparsers) -> None:
     p = add_parser(sub, "demo", help="run the end-to-end demo on the embedded example data")
     p.add_argument("-o", "--output", default="demo_output", help="output folder")
 
-    def run(args):
+    def run(args: argparse.Namespace):
         from emlpack.cli.demo import run_demo
 
         log_to_stdout()

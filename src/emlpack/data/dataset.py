@@ -17,6 +17,7 @@ from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -27,6 +28,9 @@ from emlpack.data.shards import is_sharded, read_shards
 from emlpack.errors import EmlpackError
 from emlpack.nn.graph import Graph, collate
 from emlpack.structure import Structure
+
+if TYPE_CHECKING:
+    from emlpack.data.references import ConstantReference
 
 _SYMBOLS = {1: "H", 6: "C", 7: "N", 8: "O", 9: "F", 15: "P", 16: "S", 17: "Cl", 3: "Li",
             11: "Na", 5: "B", 14: "Si", 12: "Mg", 13: "Al", 4: "Be", 2: "He", 10: "Ne", 18: "Ar"}
@@ -193,7 +197,8 @@ class Collater:
     Augmentation of configuration ``index`` in epoch ``epoch`` uses the generator seeded with
     ``(seed, epoch, index)``; set :attr:`epoch` before each epoch."""
 
-    def __init__(self, reference, cutoff: float, gcut: float, dtype: torch.dtype = torch.float32,
+    def __init__(self, reference: HydrideReference | ConstantReference, cutoff: float,
+                 gcut: float, dtype: torch.dtype = torch.float32,
                  augmentation: AugmentationConfig | None = None, seed: int = 0):
         self.reference = reference
         self.cutoff, self.gcut, self.dtype = cutoff, gcut, dtype
@@ -217,8 +222,9 @@ class Collater:
                           indices, n_aug, n_sing)
 
 
-def make_batch(structures: Sequence[Structure], reference, cutoff: float, gcut: float,
-               dtype: torch.dtype, indices: Sequence[int] | None = None,
+def make_batch(structures: Sequence[Structure], reference: HydrideReference | ConstantReference,
+               cutoff: float, gcut: float, dtype: torch.dtype,
+               indices: Sequence[int] | None = None,
                n_augmented: int = 0, n_singular: int = 0) -> Batch:
     """A :class:`Batch` of labelled ``structures`` (hydrides appended for a live reference)."""
     b = len(structures)

@@ -16,6 +16,7 @@ the training set (:class:`ConstantReference`).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -23,6 +24,9 @@ import torch
 from emlpack.errors import EmlpackError
 from emlpack.structure import Structure
 from emlpack.units import HARTREE
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 #: order of the hydrides in coefficient vectors
 HYDRIDES = ("H2", "CH4", "NH3", "H2O")
@@ -92,7 +96,8 @@ class HydrideReference:
     kind = "hydrides"
     n_extra = len(HYDRIDES)
 
-    def __init__(self, structures: list[Structure], energies) -> None:
+    def __init__(self, structures: list[Structure],
+                 energies: Sequence[float] | np.ndarray) -> None:
         if len(structures) != len(HYDRIDES):
             raise HydrideReferenceError(f"need the {len(HYDRIDES)} hydrides {HYDRIDES}")
         self.structures = list(structures)

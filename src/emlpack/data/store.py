@@ -29,12 +29,17 @@ from __future__ import annotations
 import os
 from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from emlpack._files import atomic_path, try_lock
 from emlpack.errors import EmlpackError
 from emlpack.structure import Structure
+
+if TYPE_CHECKING:
+    import h5py
+    from numpy.typing import DTypeLike
 
 FORMAT = "emlpack-store"
 FORMAT_VERSION = 1
@@ -119,7 +124,7 @@ class DatasetStore:
         self._lock_fd = fd
 
     @property
-    def file(self):
+    def file(self) -> h5py.File:
         """The open ``h5py.File`` (reopened in a forked child process)."""
         if self._pid != os.getpid():
             self._file = None
@@ -149,7 +154,7 @@ class DatasetStore:
     def __getstate__(self):
         return {"path": self.path, "mode": "r"}
 
-    def __setstate__(self, state) -> None:
+    def __setstate__(self, state: dict) -> None:
         self.__init__(state["path"], state["mode"])
 
     def _truncate_uncommitted(self) -> None:
@@ -309,7 +314,7 @@ class DatasetStore:
         pair_start = n_p + np.concatenate([[0], np.cumsum(pair_len)[:-1]])
         nan3 = np.full((3, 3), np.nan)
 
-        def forces_of(s, attr, n):
+        def forces_of(s: Structure, attr: str, n: int):
             value = getattr(s, attr)
             return np.full((n, 3), np.nan) if value is None else value
 
@@ -414,7 +419,7 @@ class DatasetStore:
 
 
 # ---------------------------------------------------------------------------------- helpers
-def _create_layout(f, chunk_scale: float = 1.0) -> None:
+def _create_layout(f: h5py.File, chunk_scale: float = 1.0) -> None:
     """Empty groups and datasets; ``chunk_scale`` < 1 makes small files (e.g. shards) compact."""
     f.attrs["format"] = FORMAT
     f.attrs["format_version"] = FORMAT_VERSION
@@ -423,7 +428,8 @@ def _create_layout(f, chunk_scale: float = 1.0) -> None:
     for name in ("n_records", "n_cores", "n_pairs", "n_failures", "n_references"):
         f.attrs[name] = 0
 
-    def make(group, name, shape, dtype, chunk=1024):
+    def make(group: h5py.Group, name: str, shape: tuple[int, ...], dtype: DTypeLike,
+             chunk: int = 1024):
         chunk = max(4, int(chunk * chunk_scale))
         group.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype,
                              chunks=(chunk, *shape))
@@ -450,7 +456,7 @@ def _create_layout(f, chunk_scale: float = 1.0) -> None:
         make(ref, name, (), f"S{_STR_LEN[name]}", 64)
 
 
-def _write_rows(group, columns: dict, start: int) -> None:
+def _write_rows(group: h5py.Group, columns: dict, start: int) -> None:
     for name, values in columns.items():
         ds = group[name]
         if ds.dtype.kind == "S":
@@ -471,9 +477,9 @@ def _encode(value: str, size: int, name: str) -> bytes:
     return data[: size - 3].decode(errors="ignore").encode() + b"..."
 
 
-def _text(value) -> str:
+def _text(value: bytes | str) -> str:
     return value.decode() if isinstance(value, bytes) else str(value)
 
 
-def _is_nan(value) -> bool:
+def _is_nan(value: object) -> bool:
     return isinstance(value, float) and not np.isfinite(value)

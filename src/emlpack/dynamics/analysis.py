@@ -30,12 +30,16 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from emlpack._files import write_figure_atomic, write_json_atomic
 from emlpack.dynamics.ir_acf import trajectory_file
 from emlpack.errors import EmlpackError
+
+if TYPE_CHECKING:
+    from emlpack.dynamics.ir_acf import DipoleIRSpectrum
 
 logger = logging.getLogger(__name__)
 
@@ -419,7 +423,7 @@ def run_md_ir(
     discard_steps: int = 0,
     log: Callable[[str], None] | None = None,
     **options,
-):
+) -> DipoleIRSpectrum:
     """``emlp md-ir``: IR spectrum from the dipole ACF of an ``emlp md`` trajectory (see
     :func:`emlpack.dynamics.ir_acf.ir_from_trajectory`), optionally overlaid with the harmonic
     spectrum of an ``emlp ir`` JSON (``frequencies_cm-1``, ``intensities_km_per_mol``); the summary

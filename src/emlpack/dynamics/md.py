@@ -54,6 +54,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import ase.units
 import numpy as np
@@ -78,6 +79,9 @@ from emlpack.pairs.checks import MAX_CORE_DISTANCE, MD_MIN_PAIR_DISTANCE, check_
 from emlpack.pairs.guess import guess_matched
 from emlpack.pairs.solvers import WarmStartSolver, md_solver
 from emlpack.structure import Structure
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 __all__ = [
     "MDResult",
@@ -153,7 +157,7 @@ def run_md(
     dt_fs: float = 0.5,
     temperature_K: float | None = 300.0,
     ensemble: str = "nvt",
-    field=None,
+    field: np.ndarray | Sequence[float] | None = None,
     seed: int = 0,
     tdamp_fs: float = 100.0,
     tchain: int = 3,
@@ -223,8 +227,9 @@ def run_md(
 
 
 class _Run:
-    def __init__(self, model, structure, field_v, out_dir, log, sig, watchdog, guess_method,
-                 callback):
+    def __init__(self, model: EMLP, structure: Structure, field_v: np.ndarray, out_dir: Path,
+                 log: logging.Logger, sig: dict, watchdog: Watchdog, guess_method: str,
+                 callback: Callable[[int, Atoms, EMLPCalculator], None] | None):
         self.model, self.s0, self.field = model, structure, field_v
         self.dir, self.log, self.sig = out_dir, log, sig
         self.watchdog, self.guess_method, self.callback = watchdog, guess_method, callback
@@ -551,7 +556,7 @@ class _Run:
         return result
 
 
-def _jsonable(obj):
+def _jsonable(obj: object):
     return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist")
                                  else float(o)))
 

@@ -27,6 +27,7 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from dataclasses import field as dataclass_field
 from pathlib import Path
+from typing import IO, TYPE_CHECKING
 
 import ase.io
 import numpy as np
@@ -46,6 +47,9 @@ from emlpack.structure import (
     n_core_pairs,
 )
 from emlpack.units import FIELD_AU_IN_V_PER_A
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 __all__ = [
     "ExtxyzError",
@@ -405,7 +409,7 @@ def _finite_positions(atoms: Atoms, source: str) -> np.ndarray:
     return positions
 
 
-def reference_field(efield, source: str) -> np.ndarray:
+def reference_field(efield: object, source: str) -> np.ndarray:
     """The field (V/Å) of a reference-convention frame from its ``efield`` value (atomic units;
     ``None``: no field). The one conversion of the field unit on reading; a magnitude above
     :data:`MAX_REFERENCE_FIELD_AU` is refused as a field probably written in V/Å."""
@@ -474,7 +478,9 @@ def _reference_frame(atoms: Atoms, source: str) -> ReferenceFrame:
     )
 
 
-def check_pair_count(numbers, n_given: int | None, charge: float, source: str) -> None:
+def check_pair_count(
+    numbers: np.ndarray | Sequence[int], n_given: int | None, charge: float, source: str
+) -> None:
     """Raise :class:`ExtxyzError` unless ``n_given`` electron pairs (``Es`` rows) fit the cores
     ``numbers`` at total ``charge``: the valence pairs, or those plus the 1s core centres
     (``n_given=None``: only that the electron count is even, before pairs are guessed).
@@ -506,7 +512,7 @@ def check_pair_count(numbers, n_given: int | None, charge: float, source: str) -
     )
 
 
-def _vector(value, key: str, source: str) -> np.ndarray:
+def _vector(value: object, key: str, source: str) -> np.ndarray:
     try:
         arr = np.asarray(value, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError):
@@ -518,7 +524,7 @@ def _vector(value, key: str, source: str) -> np.ndarray:
     return arr
 
 
-def _scalar(value, key: str, source: str) -> float:
+def _scalar(value: object, key: str, source: str) -> float:
     if isinstance(value, (bool, np.bool_)):
         raise ExtxyzError(f"{source}: '{key}' must be a number, got {value!r}")
     try:
@@ -559,7 +565,7 @@ def write_structures(
         structures = [structures]
     path = Path(path)
 
-    def write(fd) -> None:
+    def write(fd: IO[str]) -> None:
         for k, structure in enumerate(structures):
             if not isinstance(structure, Structure):
                 raise TypeError(

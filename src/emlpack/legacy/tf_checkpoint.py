@@ -29,6 +29,7 @@ import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -563,7 +564,7 @@ _SAFE_GLOBALS = {
 class _RestrictedUnpickler(pickle.Unpickler):
     """Unpickler that only reconstructs plain containers, numbers, strings and numpy values."""
 
-    def __init__(self, file, where: str) -> None:
+    def __init__(self, file: BinaryIO, where: str) -> None:
         super().__init__(file)
         self._where = where
 

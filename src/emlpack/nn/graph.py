@@ -10,12 +10,16 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from emlpack.nn.neighbors import all_pairs, half_neighbor_list
 from emlpack.structure import PAIR_NUMBER, Structure
+
+if TYPE_CHECKING:
+    from numpy.typing import DTypeLike
 
 
 @dataclass
@@ -52,7 +56,9 @@ class Graph:
     def dtype(self) -> torch.dtype:
         return self.positions.dtype
 
-    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None):
+    def to(
+        self, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+    ) -> Graph:
         """A copy with floating tensors cast to ``dtype`` and all tensors moved to ``device``."""
         out = {}
         for f in fields(self):
@@ -130,7 +136,9 @@ def collate(
             cj.append(j + offset)
         offset += n
 
-    def cat(arrays, shape=(0,), kind=np.int64):
+    def cat(
+        arrays: list[np.ndarray], shape: tuple[int, ...] = (0,), kind: DTypeLike = np.int64
+    ) -> np.ndarray:
         return np.concatenate(arrays) if arrays else np.zeros(shape, dtype=kind)
 
     f = {"dtype": dtype, "device": device}

@@ -199,7 +199,14 @@ class EMLP(nn.Module):
             free=torch.nonzero(~hold).squeeze(1),
         )
 
-    def energy(self, g: Graph, positions=None, cell=None, field=None, held=None) -> torch.Tensor:
+    def energy(
+        self,
+        g: Graph,
+        positions: torch.Tensor | None = None,
+        cell: torch.Tensor | None = None,
+        field: torch.Tensor | None = None,
+        held: HeldFilters | None = None,
+    ) -> torch.Tensor:
         """Total energy (eV) per structure (``held``: see :meth:`energy_parts`)."""
         if held is None:  # subclasses with their own energy_parts take no ``held``
             return self.energy_parts(g, positions, cell, field)["energy"]
@@ -256,7 +263,7 @@ class EMLP(nn.Module):
 
     # ------------------------------------------------------------------ conveniences
     def evaluate(
-        self, structure: Structure, stress: bool | None = None, dtype=torch.float64
+        self, structure: Structure, stress: bool | None = None, dtype: torch.dtype = torch.float64
     ) -> dict[str, np.ndarray | float]:
         """Energy (eV), core and pair forces (eV/Å), stress (eV/Å^3) of one structure, numpy."""
         stress = structure.pbc if stress is None else stress

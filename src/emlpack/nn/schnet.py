@@ -20,13 +20,18 @@ The filter of an unordered pair is computed once and the message is scattered bo
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
 from torch.autograd.function import once_differentiable
 
 from emlpack import geometry
+
+if TYPE_CHECKING:
+    from torch.autograd.function import FunctionCtx
 
 LN2 = math.log(2.0)
 
@@ -82,7 +87,9 @@ class _CubicTable(torch.autograd.Function):
     block = 256
 
     @staticmethod
-    def forward(ctx, u, coefficients):  # noqa: D102
+    def forward(  # noqa: D102
+        ctx: FunctionCtx, u: torch.Tensor, coefficients: torch.Tensor
+    ) -> torch.Tensor:
         k = torch.clamp(u.floor().long(), 0, coefficients.shape[0] - 1)
         t = u - k
         one = torch.ones_like(t)
@@ -103,7 +110,7 @@ class _CubicTable(torch.autograd.Function):
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, grad_w):  # noqa: D102
+    def backward(ctx: FunctionCtx, grad_w: torch.Tensor) -> tuple[torch.Tensor, None]:  # noqa: D102
         (dw,) = ctx.saved_tensors
         return (grad_w * dw).sum(1), None
 
@@ -146,7 +153,9 @@ class FilterTable:
         self.n_interactions = len(taylor)
         self._coefficients = {torch.float64: cubic.contiguous()}
 
-    def coefficients(self, dtype: torch.dtype, device=None) -> torch.Tensor:
+    def coefficients(
+        self, dtype: torch.dtype, device: torch.device | str | None = None
+    ) -> torch.Tensor:
         """The table (intervals, 4 L K) in ``dtype`` (rounded from float64, cached)."""
         key = (dtype, str(device))
         if key not in self._coefficients:
@@ -298,7 +307,7 @@ class SchNet(nn.Module):
     # replaces 2 L F K + F^2 multiply-adds by L (L - 1) K^2 / 2 + L K F (paper model: 1.05M ->
     # 0.36M, about a quarter of the model's work). The products are formed in float64 once per
     # parameter version and cached; the result equals the plain evaluation up to rounding.
-    def folded_weights(self, dtype: torch.dtype, device) -> dict:
+    def folded_weights(self, dtype: torch.dtype, device: torch.device | str | None) -> dict:
         """The frozen-weight tables and matrices described above (cached per dtype, device and
         parameter version): ``tables``, ``cross``, ``table_out``, ``w_out``, ``filters`` (per
         interaction ``(w1, b1, w2, b2, wc, bc)``, ``wc`` divided by the message norm) and
@@ -349,7 +358,7 @@ class SchNet(nn.Module):
                 w = layer.weight.to(f64).T
                 heads.append((w, layer.bias.to(f64) - LN2 * w.sum(0)))
 
-            def cast(x):
+            def cast(x: torch.Tensor) -> torch.Tensor:
                 return x.to(dtype=dtype, device=device).contiguous()
 
             out = {
@@ -403,7 +412,7 @@ class SchNet(nn.Module):
             out.append((y2 * fc, y2d * fc + y2 * fc1, y2dd * fc + 2.0 * y2d * fc1 + y2 * fc2))
         return out
 
-    def _apply(self, fn, recurse=True):
+    def _apply(self, fn: Callable[[torch.Tensor], torch.Tensor], recurse: bool = True) -> SchNet:
         # .to(), .double(), ... may replace the parameters: list them again
         self.__dict__.pop("_parameters_listed", None)
         return super()._apply(fn, recurse)
@@ -441,7 +450,7 @@ class SchNet(nn.Module):
         return [self._filter(f, rbf, fc) for f in fw["filters"]]
 
     @staticmethod
-    def _filter(f, rbf: torch.Tensor, fc: torch.Tensor) -> torch.Tensor:
+    def _filter(f: tuple[torch.Tensor, ...], rbf: torch.Tensor, fc: torch.Tensor) -> torch.Tensor:
         # W_ij = (softplus(z) - ln 2) f_c in one pass
         w1, b1, w2, b2, _, _ = f
         softplus = nn.functional.softplus
@@ -449,7 +458,14 @@ class SchNet(nn.Module):
             fc * -LN2, softplus(torch.addmm(b2, softplus(torch.addmm(b1, rbf, w1)), w2)), fc
         )
 
-    def _forward_folded(self, numbers, r, i, j, held=None) -> torch.Tensor:
+    def _forward_folded(
+        self,
+        numbers: torch.Tensor,
+        r: torch.Tensor,
+        i: torch.Tensor,
+        j: torch.Tensor,
+        held: HeldFilters | None = None,
+    ) -> torch.Tensor:
         fw = self.folded_weights(r.dtype, r.device)
         softplus = nn.functional.softplus
         if held is not None and held.table is not None:

@@ -76,8 +76,8 @@ def guess_pairs(atoms: Atoms, method: str = "auto", level: str = "hf/sto-3g/nodf
     raise ValueError(f"guess_pairs: unknown method {method!r} (auto, boys, lewis)")
 
 
-def guess_matched(numbers, positions, reference: np.ndarray, charge: float = 0.0,
-                  method: str = "auto") -> np.ndarray:
+def guess_matched(numbers: np.ndarray, positions: np.ndarray, reference: np.ndarray,
+                  charge: float = 0.0, method: str = "auto") -> np.ndarray:
     """:func:`guess_pairs` for the molecule ``numbers``/``positions`` (Å), ordered to match
     ``reference`` pairs (Å) by the Hungarian algorithm when the counts agree (so that a fresh
     guess continues the pair labels of, e.g., an MD trajectory)."""
@@ -105,7 +105,8 @@ def _have_pyscf() -> bool:
     return True
 
 
-def boys_pairs(numbers, positions, charge: float = 0.0, level: str = "hf/sto-3g/nodf"):
+def boys_pairs(numbers: np.ndarray, positions: np.ndarray, charge: float = 0.0,
+               level: str = "hf/sto-3g/nodf") -> np.ndarray:
     """Valence Foster-Boys centres (Å) of a quick PySCF calculation at ``level``."""
     from emlpack.qm.pyscf_labeler import LabelingError, PySCFLabeler
 
@@ -126,7 +127,7 @@ def _bonds(atoms: Atoms) -> list[tuple[int, int, np.ndarray]]:
     return [(a, b, v) for a, b, v in zip(i, j, d, strict=True) if a < b]
 
 
-def _bond_orders(numbers, bonds) -> np.ndarray:
+def _bond_orders(numbers: np.ndarray, bonds: list[tuple[int, int, np.ndarray]]) -> np.ndarray:
     orders = np.ones(len(bonds), dtype=int)
     need = np.array([VALENCE.get(int(z), 0) for z in numbers])
     for a, b, _ in bonds:
@@ -153,7 +154,8 @@ def _bond_orders(numbers, bonds) -> np.ndarray:
     return orders
 
 
-def _lone_pair_counts(numbers, bonds, orders, n_pairs_total: int) -> np.ndarray:
+def _lone_pair_counts(numbers: np.ndarray, bonds: list[tuple[int, int, np.ndarray]],
+                      orders: np.ndarray, n_pairs_total: int) -> np.ndarray:
     v = core_charges(numbers).astype(int)
     used = np.zeros(len(numbers), dtype=int)
     for (a, b, _), o in zip(bonds, orders, strict=True):

@@ -67,6 +67,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -89,6 +90,15 @@ from emlpack.pairs.checks import (
 )
 from emlpack.properties.hessian import short_range_position_hessian, standard_energy
 from emlpack.structure import Structure
+
+if TYPE_CHECKING:
+    from typing import TypeVar
+
+    #: a numpy array or a torch tensor, the same type in and out
+    _ArrayT = TypeVar("_ArrayT", np.ndarray, torch.Tensor)
+
+    #: per structure None or the (lower, upper) box of its pairs, (P, 3) each (Å)
+    _Bounds = Sequence[tuple[np.ndarray, np.ndarray] | None] | None
 
 
 @dataclass
@@ -556,7 +566,10 @@ class _ActiveEvaluator:
         out[..., self.rows, :] = product(v[..., self.rows, :])
         return torch.where(active[self.full.pair_batch, None], out, 0.0)
 
-    def __call__(self, x, active, energy, grad, long_range=True):
+    def __call__(
+        self, x: torch.Tensor, active: torch.Tensor, energy: torch.Tensor, grad: torch.Tensor,
+        long_range: bool = True,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         self._compact(active)
         if self.rows is None:
             return self.full.energy_gradient(x, long_range)
@@ -664,7 +677,8 @@ def _missing_edges(model: EMLP, start: Structure, pairs: np.ndarray) -> bool:
     return bool(np.any((d1 < cutoff) & (d0 >= cutoff)))
 
 
-def _relax_once(model, structures, opts, bounds) -> list[RelaxResult]:
+def _relax_once(model: EMLP, structures: Sequence[Structure], opts: RelaxOptions,
+                bounds: _Bounds) -> list[RelaxResult]:
     """One relaxation of ``structures`` on graphs built at their start pairs."""
     if opts.initial_hessian != "coulomb":
         return _escape_saddles(model, structures, _relax(model, structures, opts, bounds),
@@ -699,7 +713,8 @@ def _at_saddle(structure: Structure, result: RelaxResult, opts: RelaxOptions) ->
     )
 
 
-def _escape_saddles(model, structures, results, opts, bounds) -> list[RelaxResult]:
+def _escape_saddles(model: EMLP, structures: Sequence[Structure], results: list[RelaxResult],
+                    opts: RelaxOptions, bounds: _Bounds) -> list[RelaxResult]:
     """``results`` with every converged saddle (:func:`_at_saddle`) relaxed again from its
     pairs displaced by ``opts.saddle_step`` along the softest mode of the exact pair Hessian,
     both ways (at most ``opts.saddle_escapes`` rounds): the lowest successful result replaces
@@ -747,7 +762,11 @@ def _after(first: RelaxResult, then: RelaxResult) -> RelaxResult:
     return then
 
 
-def _setup(model, structures, bounds, dtype=torch.float64, filter_table: float = 0.0):
+def _setup(
+    model: EMLP, structures: Sequence[Structure], bounds: _Bounds,
+    dtype: torch.dtype = torch.float64, filter_table: float = 0.0,
+) -> tuple[Graph, _PairProblem, torch.Tensor, torch.Tensor, torch.Tensor,
+           Callable[[torch.Tensor, torch.Tensor], torch.Tensor]]:
     g = model.graph(structures, dtype=dtype)
     prob = _PairProblem(model, g, filter_table=filter_table)
     x = g.positions[prob.pair_idx].clone()
@@ -774,7 +793,10 @@ def _setup(model, structures, bounds, dtype=torch.float64, filter_table: float =
     return g, prob, x, lower, upper, projected
 
 
-def _newton_step(prob, hessian, gp, held, floor, active, alpha, max_step, mirror=None):
+def _newton_step(prob: _PairProblem, hessian: torch.Tensor, gp: torch.Tensor,
+                 held: torch.Tensor | None, floor: float | torch.Tensor, active: torch.Tensor,
+                 alpha: torch.Tensor, max_step: float | torch.Tensor,
+                 mirror: float | None = None) -> torch.Tensor:
     """Regularised projected-Newton step: coordinates held at a bound by the gradient are
     fixed (rows/columns replaced by the identity; ``held`` None: none), the model is shifted
     to curvature >= floor (float or (B,)),
@@ -835,7 +857,8 @@ class _BondRotations:
     so a rotation along a soft mode no longer reads as the Cartesian chord (whose radial
     O(theta^2 rho) part made SR1 take away the stiff radial curvature)."""
 
-    def __init__(self, structures, x: torch.Tensor, rho_min: float = 0.3) -> None:
+    def __init__(self, structures: Sequence[Structure], x: torch.Tensor,
+                 rho_min: float = 0.3) -> None:
         # (measured: rho_min 0.1, 0.2, 0.3 Å alike on the benchmark's acetylene, with the
         # curvilinear secants 0.2 and 0.3 too; 0.3 kept the fixture-weight propane of
         # tests/pairs within 100 quasi-Newton iterations: 77 evaluations, > 100 with 0.2)
@@ -961,7 +984,10 @@ class _BondRotations:
         return back + torch.where(turned, ratio, 0.0) * (back * that).sum(1, keepdim=True) * that
 
 
-def _sr1_update(prob, short, curvilinear, x, g_short, step, newton, rot, g_short_new, active):
+def _sr1_update(prob: _PairProblem, short: torch.Tensor, curvilinear: _BondRotations | None,
+                x: torch.Tensor, g_short: torch.Tensor, step: torch.Tensor,
+                newton: torch.Tensor, rot: torch.Tensor | None, g_short_new: torch.Tensor,
+                active: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Symmetric-rank-one update of the short-range model ``short`` (B, m, m; eV/Å^2) from a
     step (P, 3; Å) evaluated at ``x`` + ``step``: short-range gradients ``g_short`` at ``x`` and
     ``g_short_new`` there (eV/Å), only for the ``active`` (B,) structures, skipped when r.s is
@@ -998,7 +1024,8 @@ def _blocks_to_padded(prob: _PairProblem, blocks: torch.Tensor) -> torch.Tensor:
     return out.permute(0, 1, 3, 2, 4).reshape(b, 3 * n, 3 * n)
 
 
-def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
+def _relax_coulomb(model: EMLP, structures: Sequence[Structure], opts: RelaxOptions,
+                   bounds: _Bounds) -> list[RelaxResult]:
     """Quasi-Newton with the exact analytic electrostatic pair Hessian at every iterate plus a
     symmetric-rank-one model of the short-range remainder, learnt from the change of gradient
     minus the change of the electrostatic gradient (one energy+gradient per iteration)."""
@@ -1217,7 +1244,9 @@ def _relax_coulomb(model, structures, opts, bounds) -> list[RelaxResult]:
                     fmax, min_curv, opts)
 
 
-def _lumped_short_range(prob, coulomb, x, g_short, step=1e-4, long_range=True):
+def _lumped_short_range(prob: _PairProblem, coulomb: _CoulombPairs, x: torch.Tensor,
+                        g_short: torch.Tensor, step: float = 1e-4,
+                        long_range: bool = True) -> torch.Tensor:
     """Block-diagonal (3x3 per pair) estimate of the short-range pair Hessian from three
     forward differences of the short-range gradient ``g_short`` (probe: one Cartesian
     direction on every pair at once, ``step`` Å; three batched energy+gradient evaluations in
@@ -1305,7 +1334,7 @@ def davidson_min_curvature(
         denom = torch.where(denom.abs() < 1e-8 * scale[:, None],
                             1e-8 * scale[:, None] * torch.sign(denom + 1e-300), denom)
 
-        def solve(v, denom=denom):
+        def solve(v: torch.Tensor, denom: torch.Tensor = denom) -> torch.Tensor:
             return (vec @ (((vec.transpose(1, 2) @ v[:, :, None]).squeeze(-1)) / denom)
                     [:, :, None]).squeeze(-1)
 
@@ -1320,8 +1349,12 @@ def davidson_min_curvature(
     return theta
 
 
-def _min_curvature(prob, x, grad, lower, upper, projected, opts, n_hess,
-                   model_hessian=None, product_prob=None) -> torch.Tensor:
+def _min_curvature(prob: _PairProblem, x: torch.Tensor, grad: torch.Tensor,
+                   lower: torch.Tensor, upper: torch.Tensor,
+                   projected: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+                   opts: RelaxOptions, n_hess: torch.Tensor,
+                   model_hessian: torch.Tensor | None = None,
+                   product_prob: _PairProblem | None = None) -> torch.Tensor:
     """Smallest eigenvalue of the exact pair Hessian over the free coordinates (NaN when not
     checked). With ``model_hessian`` (B, m, m) and ``opts.curvature_steps`` > 0: Davidson
     preconditioned by the model (counted as one Hessian in ``n_hess``; at most
@@ -1371,7 +1404,8 @@ def _min_curvature(prob, x, grad, lower, upper, projected, opts, n_hess,
     return min_curv
 
 
-def _relax(model, structures, opts, bounds) -> list[RelaxResult]:
+def _relax(model: EMLP, structures: Sequence[Structure], opts: RelaxOptions,
+           bounds: _Bounds) -> list[RelaxResult]:
     dtype = torch.float64
     g, prob, x, lower, upper, projected = _setup(model, structures, bounds, dtype,
                                                       opts.filter_table)
@@ -1466,7 +1500,7 @@ def _relax(model, structures, opts, bounds) -> list[RelaxResult]:
                     fmax, min_curv, opts)
 
 
-def damped_bfgs(h, s, y):
+def damped_bfgs(h: _ArrayT, s: _ArrayT, y: _ArrayT) -> _ArrayT:
     """Powell-damped BFGS update of Hessian models ``h`` (B, m, m) that keeps them positive
     definite; structures with a zero step keep their model. Torch tensors or numpy arrays
     (``h``, ``s``, ``y`` alike; numpy spares the small models of MD torch's per-call cost)."""
@@ -1486,8 +1520,11 @@ def damped_bfgs(h, s, y):
     return xp.where(ok[:, None, None], h + update, h)
 
 
-def _results(structures, prob, x, energy, grad, converged, iters, n_eval, n_hess, fmax,
-             min_curv, opts) -> list[RelaxResult]:
+def _results(structures: Sequence[Structure], prob: _PairProblem, x: torch.Tensor,
+             energy: torch.Tensor, grad: torch.Tensor, converged: torch.Tensor,
+             iters: torch.Tensor, n_eval: torch.Tensor, n_hess: torch.Tensor,
+             fmax: torch.Tensor, min_curv: torch.Tensor,
+             opts: RelaxOptions) -> list[RelaxResult]:
     xs = x.detach().numpy()
     gs = grad.detach().numpy()
     pb = prob.pair_batch.numpy()

@@ -453,7 +453,7 @@ class BoxedLBFGSB(WarmStartSolver):
         bounds = [(v - max_disp, v + max_disp) for v in x0]
         cache: dict[bytes, tuple[float, np.ndarray]] = {}
 
-        def fun(x):
+        def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
             e, grad = evaluate(x)
             cache.clear()
             cache[x.tobytes()] = (e, grad)

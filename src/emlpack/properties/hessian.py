@@ -157,7 +157,7 @@ def short_range_position_hessian(model: EMLP, g: Graph, particles: torch.Tensor,
         return h_sr + geometric(grad_r)[cols][:, cols]
 
 
-def _edge_derivatives(model: EMLP, g, x0: torch.Tensor, pbc: bool):
+def _edge_derivatives(model: EMLP, g: Graph, x0: torch.Tensor, pbc: bool):
     """Edge lengths ``r`` (E,), their Jacobian ``dr/dx`` (E, m) in the geometric extended
     variables ``x`` (positions, or fractional coordinates and cell) and a function
     ``w -> sum_e w_e d2r_e/dx2`` (m, m).

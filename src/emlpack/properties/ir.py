@@ -83,7 +83,8 @@ class IRSpectrum:
         return "\n".join(lines)
 
 
-def lorentzian(grid: np.ndarray, centres: np.ndarray, heights: np.ndarray, fwhm: float):
+def lorentzian(grid: np.ndarray, centres: np.ndarray, heights: np.ndarray,
+               fwhm: float) -> np.ndarray:
     """sum_k heights_k (1/pi) (fwhm/2) / ((grid - centres_k)^2 + (fwhm/2)^2)."""
     g = 0.5 * fwhm
     d = np.asarray(grid)[:, None] - np.asarray(centres)[None, :]

@@ -28,6 +28,7 @@ come closer than :data:`~emlpack.pairs.checks.COLLAPSE_DISTANCE` (that member we
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.optimize
@@ -40,6 +41,9 @@ from emlpack.pairs.checks import COLLAPSE_DISTANCE, check_pairs, closest_pair_di
 from emlpack.properties.hessian import extended_gradient, extended_hessian
 from emlpack.structure import Structure
 from emlpack.units import EV_PER_A3_IN_GPA
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
 
 
 @dataclass
@@ -163,7 +167,7 @@ def optimize(
     method: str = "newton",
     hessian: np.ndarray | None = None,
     hessian_every: int = 1,
-    log=None,
+    log: Callable[[str], None] | None = None,
 ) -> OptimizeResult:
     """Minimise the energy over all particle positions (and the cell for ``cell=True``).
 
@@ -201,7 +205,7 @@ def optimize(
 
 def _newton(prob: _Problem, structure: Structure, cell: bool, fmax: float, smax: float,
             max_iterations: int, max_step: float, hessian: np.ndarray | None,
-            hessian_every: int, log) -> OptimizeResult:
+            hessian_every: int, log: Callable[[str], None] | None) -> OptimizeResult:
     """Newton steps with exact Hessians (every ``hessian_every`` iterations) and a
     backtracking line search: :func:`optimize`'s default method."""
     s = structure
@@ -270,12 +274,12 @@ def _longest(s: Structure, step: np.ndarray, cell: bool) -> float:
 
 
 def _lbfgs(prob: _Problem, s0: Structure, fmax: float, smax: float, max_iterations: int,
-           log) -> OptimizeResult:
+           log: Callable[[str], None] | None) -> OptimizeResult:
     calls = {"n": 0}
 
     jac = prob.jacobian(s0)
 
-    def fun(x):
+    def fun(x: np.ndarray):
         # x -> (fractional coordinates, cell) is affine for a fixed s0: exact chain rule
         s = prob.apply(s0, x)
         calls["n"] += 1

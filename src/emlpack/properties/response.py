@@ -286,5 +286,5 @@ def crystal_response(model: EMLP, structure: Structure) -> CrystalResponse:
     return crystal_response_from_hessian(h.numpy(), structure)
 
 
-def _vec(v, fmt: str = "{:10.5f}") -> str:
+def _vec(v: np.ndarray, fmt: str = "{:10.5f}") -> str:
     return " ".join(fmt.format(x) for x in np.asarray(v))

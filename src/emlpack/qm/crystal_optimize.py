@@ -20,6 +20,7 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from ase import Atoms
@@ -30,6 +31,9 @@ from emlpack.errors import EmlpackError
 from emlpack.qm.crystal_sampling import carry_reference_pairs
 from emlpack.structure import Structure
 from emlpack.units import EV_PER_A3_IN_GPA
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 Labeler = Callable[..., Structure]
 
@@ -76,7 +80,8 @@ class LabelerCalculator(Calculator):
                 return s
         return None
 
-    def calculate(self, atoms=None, properties=("energy",), system_changes=all_changes):
+    def calculate(self, atoms: Atoms | None = None, properties: Sequence[str] = ("energy",),
+                  system_changes: Sequence[str] = all_changes) -> None:
         super().calculate(atoms, properties, system_changes)
         positions = np.array(self.atoms.get_positions())
         cell = np.array(self.atoms.get_cell())

@@ -78,7 +78,7 @@ class Executor:
         """OpenMP threads a task should use so that the workers fill the CPUs."""
         return max(1, (os.cpu_count() or 1) // max(self.workers, 1))
 
-    def submit(self, fn: Callable, *args, tag=None, priority: int = 0) -> None:
+    def submit(self, fn: Callable, *args, tag: object = None, priority: int = 0) -> None:
         """Queue ``fn(*args)``; :meth:`completed` yields it with ``tag``. Higher ``priority``
         runs first among queued tasks."""
         if self._client is None:

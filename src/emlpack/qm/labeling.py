@@ -22,6 +22,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
@@ -42,6 +43,15 @@ from emlpack.qm.sampling import (
     normal_modes,
 )
 from emlpack.units import ANGSTROM_IN_BOHR, HARTREE
+
+if TYPE_CHECKING:
+    from collections.abc import Collection, Sequence
+
+    from ase import Atoms
+    from ase.calculators.calculator import Calculator
+    from tqdm import tqdm
+
+    from emlpack.qm.pyscf_labeler import LabelResult
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +108,7 @@ def _parse_slice(text: str) -> slice:
     return slice(*parts)
 
 
-def _molecule_from_atoms(atoms, name: str, source: str) -> Molecule:
+def _molecule_from_atoms(atoms: Atoms, name: str, source: str) -> Molecule:
     from rdkit import Chem
     from rdkit.Chem import rdDetermineBonds
 
@@ -121,7 +131,7 @@ def _molecule_from_atoms(atoms, name: str, source: str) -> Molecule:
 
 
 # ---------------------------------------------------------------------------------- tasks
-def labeler_calculator(labeler: PySCFLabeler):
+def labeler_calculator(labeler: PySCFLabeler) -> Calculator:
     """A minimal ASE calculator (energy, forces at zero field; no localization) over a
     :class:`PySCFLabeler`, e.g. for ASE's optimisers."""
     from ase.calculators.calculator import CalculationFailed, Calculator, all_changes
@@ -129,7 +139,8 @@ def labeler_calculator(labeler: PySCFLabeler):
     class _Calc(Calculator):
         implemented_properties = ["energy", "forces"]
 
-        def calculate(self, atoms=None, properties=("energy",), system_changes=all_changes):
+        def calculate(self, atoms: Atoms | None = None, properties: Sequence[str] = ("energy",),
+                      system_changes: Sequence[str] = all_changes) -> None:
             super().calculate(atoms, properties, system_changes)
             res = labeler(self.atoms.numbers, self.atoms.positions, localize=False)
             if not res.ok:
@@ -139,7 +150,8 @@ def labeler_calculator(labeler: PySCFLabeler):
     return _Calc()
 
 
-def pyscf_hessian(labeler: PySCFLabeler, numbers, positions) -> np.ndarray:
+def pyscf_hessian(labeler: PySCFLabeler, numbers: np.ndarray,
+                  positions: np.ndarray) -> np.ndarray:
     """Analytic Cartesian Hessian (eV/Å^2) at zero field, shape (3n, 3n)."""
     mol, mf = labeler.build(numbers, positions, np.zeros(3), 0.0)
     mf.kernel()
@@ -181,7 +193,7 @@ def _preparation_calculator(level: str, threads: int | None):
     return labeler_calculator(PySCFLabeler(level, threads=threads))
 
 
-def finite_difference_hessian(atoms, delta: float = 0.005, cache: str | Path | None = None,
+def finite_difference_hessian(atoms: Atoms, delta: float = 0.005, cache: str | Path | None = None,
                               directions: str = "cartesian") -> np.ndarray:
     """Cartesian Hessian (eV/Å^2) by central differences of the forces.
 
@@ -223,7 +235,7 @@ def finite_difference_hessian(atoms, delta: float = 0.005, cache: str | Path | N
         return run(Path(tmp) / "vib")
 
 
-def internal_hessian(atoms, delta: float, folder: str | Path) -> np.ndarray:
+def internal_hessian(atoms: Atoms, delta: float, folder: str | Path) -> np.ndarray:
     """Eckart-projected Cartesian Hessian (eV/Å^2) from central differences of the forces of
     ``atoms`` (its calculator) along the vibrational directions only.
 
@@ -285,8 +297,8 @@ def internal_hessian(atoms, delta: float, folder: str | Path) -> np.ndarray:
     return w @ a @ w.T
 
 
-def prepare_task(source, level: str, optimize: bool, fmax: float, seed: int,
-                 threads: int | None = None, hessian: bool = True) -> Molecule:
+def prepare_task(source: tuple[str, str] | Molecule, level: str, optimize: bool, fmax: float,
+                 seed: int, threads: int | None = None, hessian: bool = True) -> Molecule:
     """Build (SMILES), optimise and compute the Hessian of one molecule (runs on a worker).
 
     ``level``: a PySCF level (analytic Hessian) or an xTB method of :data:`XTB_LEVELS`
@@ -329,7 +341,7 @@ def prepare_task(source, level: str, optimize: bool, fmax: float, seed: int,
 
 
 def label_task(config: Configuration, level: str, boys_starts: int, seed: int,
-               threads: int | None = None):
+               threads: int | None = None) -> tuple[Configuration, LabelResult]:
     """Label one configuration (runs on a worker); returns (config, LabelResult)."""
     import multiprocessing
 
@@ -352,7 +364,7 @@ class LabelingSummary:
     failures: list[str] = field(default_factory=list)
     wall_time: float = 0.0
 
-    def close_run(self, store, bar, executor, t0: float) -> None:
+    def close_run(self, store: DatasetStore, bar: tqdm, executor: Executor, t0: float) -> None:
         """End a labeling run (every driver, also on an error): close the progress bar, the
         executor and the store; record the store's size and the wall time since ``t0``."""
         bar.close()
@@ -497,7 +509,8 @@ def run_labeling(
     waiting = list(todo)  # molecules still to prepare, in order
     in_flight = {"prep": 0}
     try:
-        def submit_prepare(src, name, hessian=True, level_=prep_level):
+        def submit_prepare(src: tuple[str, str] | Molecule, name: str, hessian: bool = True,
+                           level_: str = prep_level) -> None:
             cached = _load_prepared(prep_dir, name, level_)
             if cached is not None:
                 executor.submit(_identity, cached, tag=("prep", name),
@@ -529,7 +542,7 @@ def run_labeling(
             feed()
         waiting_probes = len(recipe.get("dimer", {}).get("probes", PROBES)) if need_probes else 0
 
-        def record_failures(name: str, keys, reason: str) -> None:
+        def record_failures(name: str, keys: Collection[str], reason: str) -> None:
             store.add_failures({"key": k, "molecule_id": name, "kind": k.split("/")[1],
                                 "reason": reason} for k in sorted(keys))
             summary.n_failed_new += len(keys)
@@ -610,5 +623,5 @@ def run_labeling(
     return summary
 
 
-def _identity(x):
+def _identity(x: Molecule) -> Molecule:
     return x

@@ -23,6 +23,7 @@ from __future__ import annotations
 import time
 import traceback
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,6 +34,13 @@ from emlpack.qm.levels import Level, parse_level
 from emlpack.structure import Structure, StructureError
 from emlpack.threads import configure_openblas_coretype
 from emlpack.units import ANGSTROM_IN_BOHR, BOHR, FIELD_AU_IN_V_PER_A, HARTREE
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+    from pyscf.dft.gen_grid import Grids
+    from pyscf.dft.numint import NumInt
+    from pyscf.dft.rks import RKS
+    from pyscf.gto import Mole
 
 #: spreads (bohr^2) of two Boys starts closer than this count as the same minimum
 BOYS_SPREAD_TOL = 1e-4
@@ -52,8 +60,9 @@ REUSE_HISTORY = 4
 MIRROR_TOLERANCE = 1e-9
 
 
-def density_guess(kept: list[tuple[np.ndarray, np.ndarray]], state: np.ndarray, positions,
-                  max_shift: float = REUSE_MAX_SHIFT) -> tuple[np.ndarray | None, list[int]]:
+def density_guess(kept: list[tuple[np.ndarray, np.ndarray]], state: np.ndarray,
+                  positions: np.ndarray, max_shift: float = REUSE_MAX_SHIFT,
+                  ) -> tuple[np.ndarray | None, list[int]]:
     """An SCF start for ``state`` (positions in Å, then the field in V/Å) from converged
     densities ``kept`` [(state, density matrix)] of the same molecule.
 
@@ -160,7 +169,7 @@ class LabelResult:
         )
 
 
-def caching_numint(budget_mb: float):
+def caching_numint(budget_mb: float) -> NumInt:
     """A PySCF ``NumInt`` that keeps AO values on the grid between SCF cycles.
 
     Every SCF cycle of a GGA/hybrid evaluates the atomic orbitals and their first derivatives
@@ -187,8 +196,10 @@ def caching_numint(budget_mb: float):
             self._blksize = None
             self._rest = 0  # first grid point whose block is not cached
 
-        def block_loop(self, mol, grids, nao=None, deriv=0, max_memory=2000,
-                       non0tab=None, blksize=None, buf=None):
+        def block_loop(self, mol: Mole, grids: Grids | _GridTail, nao: int | None = None,
+                       deriv: int = 0, max_memory: float = 2000,
+                       non0tab: np.ndarray | None = None, blksize: int | None = None,
+                       buf: np.ndarray | None = None):
             plain = (deriv != self.cached_deriv or non0tab is not None or blksize is not None
                      or buf is not None or grids.coords is None or grids.non0tab is None
                      or mol is not grids.mol or self.budget_bytes <= 0)
@@ -232,7 +243,7 @@ def caching_numint(budget_mb: float):
 _SECOND = ((4, 5, 6), (5, 7, 8), (6, 8, 9))
 
 
-def xc_nuclear_gradient(mf) -> np.ndarray:
+def xc_nuclear_gradient(mf: RKS) -> np.ndarray:
     """The XC part of the RKS nuclear gradient (Hartree/bohr), shape (n_atoms, 3).
 
     The same quantity as PySCF's ``grad.rks.get_vxc`` (GGA, no grid response) contracted with
@@ -275,7 +286,7 @@ def xc_nuclear_gradient(mf) -> np.ndarray:
     return grad
 
 
-def _empty_grids(mol):
+def _empty_grids(mol: Mole):
     """A PySCF grid without points (the XC part of a gradient on it is zero)."""
     from pyscf.dft import gen_grid
 
@@ -289,7 +300,7 @@ def _empty_grids(mol):
 class _GridTail:
     """The grid points ``start:`` of a PySCF grid (``start`` a multiple of the block size)."""
 
-    def __init__(self, grids, start: int, blksize: int) -> None:
+    def __init__(self, grids: Grids, start: int, blksize: int) -> None:
         self.mol = grids.mol
         self.coords = grids.coords[start:]
         self.weights = grids.weights[start:]
@@ -363,7 +374,8 @@ class PySCFLabeler:
         self._densities: list[tuple[np.ndarray, np.ndarray]] = []
 
     # ------------------------------------------------------------------ public
-    def __call__(self, numbers, positions, field=(0.0, 0.0, 0.0), charge: float = 0.0,
+    def __call__(self, numbers: ArrayLike, positions: ArrayLike,
+                 field: ArrayLike = (0.0, 0.0, 0.0), charge: float = 0.0,
                  forces: bool = True, localize: bool = True) -> LabelResult:
         """Label one molecule.
 
@@ -406,7 +418,8 @@ class PySCFLabeler:
                     **kwargs)
 
     # ------------------------------------------------------------------ internals
-    def build(self, numbers, positions, field_au, charge):
+    def build(self, numbers: np.ndarray, positions: np.ndarray, field_au: np.ndarray,
+              charge: float) -> tuple[Mole, RKS]:
         """The PySCF ``Mole`` and the field-perturbed (unconverged) RKS object."""
         from pyscf import dft, gto
 
@@ -483,7 +496,8 @@ class PySCFLabeler:
             self._molecule, self._densities = molecule, []
         self._densities = [*self._densities, (self._state(res), dm)][-REUSE_HISTORY:]
 
-    def _solve(self, res: LabelResult, mol, mf, field_au, forces: bool, localize: bool) -> None:
+    def _solve(self, res: LabelResult, mol: Mole, mf: RKS, field_au: np.ndarray, forces: bool,
+               localize: bool) -> None:
         energy = mf.kernel(dm0=self._initial_density(res))
         cycles = int(getattr(mf, "cycles", 0) or 0)
         if not mf.converged:
@@ -518,7 +532,7 @@ class PySCFLabeler:
             res.centres = centres[order]
             res.core_mask = core
 
-    def _gradient(self, mol, mf, field_au: np.ndarray) -> np.ndarray:
+    def _gradient(self, mol: Mole, mf: RKS, field_au: np.ndarray) -> np.ndarray:
         """dE/dR (Hartree/bohr) including the field terms PySCF's gradient does not know."""
         g = mf.nuc_grad_method()
         g.verbose = 0
@@ -545,7 +559,7 @@ class PySCFLabeler:
             grad -= mol.atom_charges()[:, None] * field_au[None, :]
         return grad
 
-    def _boys(self, mol, occ: np.ndarray):
+    def _boys(self, mol: Mole, occ: np.ndarray):
         """Foster-Boys centres (bohr): lowest spread over several stabilised starts."""
         from pyscf import lo
 
@@ -594,7 +608,8 @@ class PySCFLabeler:
         return best[1], spreads, note, best[2]
 
 
-def assign_core_centres(numbers, positions, centres):
+def assign_core_centres(numbers: np.ndarray, positions: np.ndarray,
+                        centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Order centres as core centres (in atom order) then valence; return (order, core_mask).
 
     Each atom with ``k`` core pairs (1 for Li..Ne, 5 for Na..Ar) takes its ``k`` nearest

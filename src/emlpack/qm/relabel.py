@@ -11,6 +11,7 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
@@ -26,6 +27,9 @@ from emlpack.io.extxyz import (
 from emlpack.qm.levels import parse_level
 from emlpack.qm.pyscf_labeler import LabelResult, PySCFLabeler
 from emlpack.structure import Structure, n_core_pairs
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable
 
 
 @dataclass
@@ -163,7 +167,8 @@ def _label_frame(lab: PySCFLabeler, frame: ReferenceFrame) -> LabelResult:
     return lab(frame.numbers, frame.positions, frame.field)
 
 
-def _results_in_order(frames, lab, workers: int, scheduler: str | None):
+def _results_in_order(frames: Iterable[ReferenceFrame], lab: PySCFLabeler, workers: int,
+                      scheduler: str | None):
     """Label results in frame order, computed here or on Dask (yielded as they are needed)."""
     from functools import partial
 

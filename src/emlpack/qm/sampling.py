@@ -21,12 +21,18 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from emlpack import geometry
 from emlpack.errors import EmlpackError
 from emlpack.units import BOLTZMANN_EV_K, FIELD_AU_IN_V_PER_A
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from rdkit.Chem import Mol
 
 #: ANI-style floor of the harmonic force constant (eV/Å^2 per amu), avoiding huge amplitudes
 #: along nearly free (e.g. methyl-rotor) modes; about 100 cm^-1
@@ -74,7 +80,7 @@ class Molecule:
         return out
 
 
-def restore_closed_shell(mol):
+def restore_closed_shell(mol: Mol) -> Mol:
     """Turn QM7's radical brackets (``[N]``, ``[C]``) back into multiple bonds (RDKit mol).
 
     Adjacent atoms with unpaired electrons get their bond order raised by one per pair, the
@@ -176,14 +182,15 @@ def random_field(rng: np.random.Generator, max_au: float = 0.01,
 
 
 # ---------------------------------------------------------------------------------- normal modes
-def masses_of(numbers) -> np.ndarray:
+def masses_of(numbers: np.ndarray) -> np.ndarray:
     """Atomic masses (amu) of ASE."""
     from ase.data import atomic_masses
 
     return atomic_masses[np.asarray(numbers)]
 
 
-def normal_modes(numbers, positions, hessian) -> tuple[np.ndarray, np.ndarray]:
+def normal_modes(numbers: np.ndarray, positions: np.ndarray,
+                 hessian: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """:func:`emlpack.geometry.normal_modes` of a Cartesian Hessian (eV/Å^2) with the masses
     of ``numbers``: ``(k, modes)``, force constants ``omega^2`` (eV/(Å^2 amu)) of the
     vibrations and their mass-weighted orthonormal eigenvectors (3n, n_vib)."""
@@ -206,8 +213,8 @@ def has_negative_curvature(k: np.ndarray) -> bool:
     return bool(len(k)) and bool(np.any(k < -1e-3 * max(abs(k).max(), 1.0)))
 
 
-def normal_mode_sample(numbers, positions, hessian, temperature: float,
-                       rng: np.random.Generator, n_modes: int | None = None,
+def normal_mode_sample(numbers: np.ndarray, positions: np.ndarray, hessian: np.ndarray,
+                       temperature: float, rng: np.random.Generator, n_modes: int | None = None,
                        min_force_constant: float = MIN_MODE_FORCE_CONSTANT,
                        modes: tuple[np.ndarray, np.ndarray] | None = None) -> NMSSample:
     """Displace along a random subset of normal modes with Boltzmann amplitudes at ``T`` (K).
@@ -343,7 +350,8 @@ def dimer_sample(positions: np.ndarray, probe_positions: np.ndarray, rng: np.ran
 
 
 # ---------------------------------------------------------------------------------- crystals
-def cell_normal_mode_sample(numbers, positions: np.ndarray, cell: np.ndarray,
+def cell_normal_mode_sample(numbers: Sequence[int] | np.ndarray, positions: np.ndarray,
+                            cell: np.ndarray,
                             hessian: np.ndarray | Callable[[np.ndarray, np.ndarray], np.ndarray],
                             temperature: float, rng: np.random.Generator,
                             min_eigenvalue: float | None = None,

@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -35,10 +36,19 @@ from emlpack.nn.checkpoint import load_model, read_checkpoint
 from emlpack.train.loss import field_response_slope, predict
 from emlpack.units import E_A_IN_DEBYE
 
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from emlpack.data.references import ConstantReference, HydrideReference
+    from emlpack.nn.potential import EMLP
+    from emlpack.structure import Structure
+
 log = logging.getLogger(__name__)
 
 
-def load_for_evaluation(path: str | Path):
+def load_for_evaluation(
+    path: str | Path,
+) -> tuple[EMLP, HydrideReference | ConstantReference, dict]:
     """``(model float64, reference, metadata)`` of a checkpoint written by the trainer."""
     meta = read_checkpoint(path).get("metadata", {})
     if "reference" not in meta:
@@ -47,7 +57,8 @@ def load_for_evaluation(path: str | Path):
     return load_model(path, torch.float64), reference_from_metadata(meta["reference"]), meta
 
 
-def static_errors(model, reference, structures, batch_size: int = 32) -> dict:
+def static_errors(model: EMLP, reference: HydrideReference | ConstantReference,
+                  structures: Sequence[Structure], batch_size: int = 32) -> dict:
     """Per-quantity arrays of predictions, targets and field-free targets."""
     c = model.config
     out = {k: [] for k in ("e_pred", "e_true", "f_pred", "f_true", "f_free",
@@ -82,7 +93,8 @@ def _cat(arrays: list) -> np.ndarray:
     return np.concatenate(arrays) if arrays else np.zeros(0)
 
 
-def dynamic_errors(model, reference, structures, batch_size: int = 16,
+def dynamic_errors(model: EMLP, reference: HydrideReference | ConstantReference,
+                   structures: Sequence[Structure], batch_size: int = 16,
                    max_pair_shift: float = 0.5, progress: bool = False) -> dict:
     """Relax the pairs of every structure; errors at the relaxed pairs and the failure rate."""
     from tqdm import tqdm
@@ -141,7 +153,8 @@ def dynamic_errors(model, reference, structures, batch_size: int = 16,
     }
 
 
-def evaluate(model, reference, structures, dynamic: bool = True, progress: bool = False,
+def evaluate(model: EMLP, reference: HydrideReference | ConstantReference,
+             structures: Sequence[Structure], dynamic: bool = True, progress: bool = False,
              max_pair_shift: float = 0.5) -> tuple[dict, dict]:
     """``(metrics, arrays)`` of one model on ``structures`` (units: eV, Å, Debye)."""
     a = static_errors(model, reference, structures)
@@ -244,7 +257,8 @@ def parity_plots(arrays: dict, path: str | Path, title: str = "") -> Path:
     return path
 
 
-def select_structures(structures, meta: dict, data_path: str | Path, subset: str):
+def select_structures(structures: Sequence[Structure], meta: dict, data_path: str | Path,
+                      subset: str) -> list[Structure]:
     """The ``subset`` (train/val/test/all) of ``structures`` using the checkpoint's split."""
     if subset == "all":
         return list(structures)
@@ -262,7 +276,8 @@ def select_structures(structures, meta: dict, data_path: str | Path, subset: str
     return [structures[i] for i in index]
 
 
-def evaluate_models(model_paths, data_path, output, subset: str = "test",
+def evaluate_models(model_paths: Sequence[str | Path], data_path: str | Path,
+                    output: str | Path, subset: str = "test",
                     dynamic: bool = True, max_structures: int | None = None,
                     progress: bool = True) -> tuple[str, dict]:
     """Evaluate one or more models (an ensemble) on ``data_path``; write Markdown, JSON, PNG."""

@@ -15,16 +15,23 @@ of K processes equals that of one process with the same global batch).
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import torch
 
 from emlpack.data.dataset import Batch
 from emlpack.units import EV_PER_A3_IN_GPA
 
+if TYPE_CHECKING:
+    import numpy as np
+
+    from emlpack.data.references import ConstantReference, HydrideReference
+
 TERMS = ("energy", "forces", "pair_forces", "stress")
 
 
-def field_response_slope(residual, field_force) -> float:
+def field_response_slope(residual: np.ndarray | torch.Tensor,
+                         field_force: np.ndarray | torch.Tensor) -> float:
     """``c = sum r . qE / sum |qE|^2`` over electron pairs (dimensionless).
 
     ``residual`` is predicted minus labelled pair force and ``field_force`` the field's force
@@ -53,7 +60,8 @@ class LossWeights:
         return asdict(self)
 
 
-def predict(model, batch: Batch, reference, stress: bool | None = None,
+def predict(model: torch.nn.Module, batch: Batch,
+            reference: HydrideReference | ConstantReference, stress: bool | None = None,
             create_graph: bool | None = None) -> dict[str, torch.Tensor]:
     """Model outputs for ``batch``: ``energy`` (B,) relative to the (live) reference,
     ``forces`` (N_graph, 3), ``stress`` (B, 3, 3) when requested."""

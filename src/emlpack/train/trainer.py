@@ -42,6 +42,7 @@ import shutil
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, TextIO
 
 import numpy as np
 import torch
@@ -72,12 +73,22 @@ from emlpack.nn.potential import EMLP, ModelConfig
 from emlpack.train.config import ConfigError, dump_config
 from emlpack.train.loss import TERMS, LossWeights, Metrics, combine, loss_terms, predict
 
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from torch.utils.tensorboard import SummaryWriter
+
+    from emlpack.structure import Structure
+
 log = logging.getLogger(__name__)
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
-def build_reference(cfg: dict, structures, train_idx, store_hydrides):
+def build_reference(
+    cfg: dict, structures: Sequence[Structure], train_idx: np.ndarray | Sequence[int],
+    store_hydrides: dict | None,
+) -> HydrideReference | ConstantReference:
     """The reference of the run: hydrides (live) or a constant (mean training energy)."""
     d = cfg["data"]
     kind = d["reference"]
@@ -333,7 +344,7 @@ class Trainer:
             writer.close()
         return out / "best.pt"
 
-    def _epoch(self, writer) -> None:
+    def _epoch(self, writer: SummaryWriter | None) -> None:
         """One epoch: train, validate, then (rank 0) best.pt, last.pt, the log row, a snapshot
         when one is due, TensorBoard and the progress line."""
         out = self.run_dir
@@ -499,7 +510,7 @@ class Trainer:
             rows = list(csv.DictReader(fh))
         keep = [r for r in rows if int(r["epoch"]) <= self.epoch]
         if len(keep) != len(rows):
-            def write(fh) -> None:
+            def write(fh: TextIO) -> None:
                 w = csv.DictWriter(fh, fieldnames=list(rows[0]))
                 w.writeheader()
                 w.writerows(keep)

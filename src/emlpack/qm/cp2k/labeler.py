@@ -29,6 +29,7 @@ import tempfile
 import time
 import weakref
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -46,6 +47,11 @@ from emlpack.qm.cp2k.runner import run_cp2k
 from emlpack.qm.pyscf_labeler import LabelingError
 from emlpack.structure import Structure, core_charges
 from emlpack.units import ANGSTROM_IN_BOHR, EV_PER_A3_IN_GPA, HARTREE
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable, Sequence
+
+    from emlpack.qm.labeling import LabelingSummary
 
 
 # ---------------------------------------------------------------------------------- labeler
@@ -167,7 +173,7 @@ class CP2KLabeler:
 _LABELERS: dict[tuple, CP2KLabeler] = {}
 
 
-def _labeler_for(settings: CP2KSettings | None, workdir) -> CP2KLabeler:
+def _labeler_for(settings: CP2KSettings | None, workdir: str | Path | None) -> CP2KLabeler:
     settings = settings or CP2KSettings()
     if not settings.reuse_wavefunction:
         return CP2KLabeler(settings, workdir=workdir)
@@ -201,10 +207,11 @@ def label_task(structure: Structure, settings: CP2KSettings | None, stress: bool
 
 
 def label_into_store(
-    items, store_path: str | Path, settings: CP2KSettings | None = None, *,
+    items: Iterable[tuple[str, Structure, bool]], store_path: str | Path,
+    settings: CP2KSettings | None = None, *,
     workers: int = 0, scheduler: str | None = None, retry_failed: bool = False,
     workdir: str | Path | None = None, progress: bool = False,
-):
+) -> LabelingSummary:
     """Label ``(key, structure, stress)`` items into a :class:`DatasetStore`, resumably.
 
     Keys already in the store (records, and recorded failures unless ``retry_failed``) are
@@ -257,8 +264,9 @@ def label_into_store(
 
 
 # ---------------------------------------------------------------------------------- checks
-def field_force_check(structure: Structure, settings: CP2KSettings, field_v_per_a,
-                      components=((0, 0),), h: float = 0.005,
+def field_force_check(structure: Structure, settings: CP2KSettings,
+                      field_v_per_a: Sequence[float] | np.ndarray,
+                      components: Sequence[tuple[int, int]] = ((0, 0),), h: float = 0.005,
                       workdir: str | Path | None = None) -> list[dict]:
     """Berry-phase field forces against central finite differences of the energy.
 
