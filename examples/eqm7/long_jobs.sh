@@ -19,7 +19,8 @@
 # table (results in runs/eqm7/results, not committed: a session reviews them) in one process,
 # beside the references.
 # Phase 3 starts when that has ended. The references still to compute are split between two
-# processes (alternate molecules of the card's order), one per core.
+# processes (alternate molecules of the card's order), one per core; the 10x non-augmented
+# model (stopped in phase 2) goes on at nice 10.
 # A watcher moves from one phase to the next as the jobs end, without waiting for a session.
 #
 # Each job runs on its own copy of src/ (/tmp/emlp-JOB), so editing the code does not change a
@@ -172,6 +173,7 @@ watch() {  # phase 1 -> 2 -> 3 as the jobs end
   start_study_eval
   while running study-eval; do sleep 60; done
   split_references
+  start_noaug_10x  # the rest of its steps at nice 10, from what the references leave
 }
 
 start_watcher() {
