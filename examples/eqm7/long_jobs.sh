@@ -19,7 +19,7 @@
 # table (results in runs/eqm7/results, not committed: a session reviews them) in one process,
 # beside the references.
 # Phase 3 starts when that has ended. The references still to compute are split between two
-# processes (alternate molecules of the card's order), one per core; the 10x non-augmented
+# processes (balanced by their force calls still to do and the size of each call), one per core; the 10x non-augmented
 # model (stopped in phase 2) goes on at nice 10.
 # A watcher moves from one phase to the next as the jobs end, without waiting for a session.
 #
@@ -91,18 +91,48 @@ rows = csv.DictReader(open('$DATA/molecules.csv'))
 print(' '.join(r['name'] for r in rows if r['split'] == 'test' and not done(r['name'])))"
 }
 
-split_references() {  # phase 3: the remaining references in two processes (alternate molecules)
-  local names a=() b=() k=0 n
+reference_halves() {  # the remaining references as two lines of names, balanced by cost
+  # cost of a molecule: its force calls still to do x (aug-cc-pVTZ basis functions)^2.5, from
+  # the committed static reference (23 functions per H, 46 per C, N, O); the most even split;
+  # each half in the card's order
+  PYTHONPATH=src "$PY" - "$DATA/references/pbe0_aug-cc-pvtz" "$@" <<'PYEOF'
+import json, sys
+from pathlib import Path
+
+refs, names = Path(sys.argv[1]), sys.argv[2:]
+cost = {}
+for name in names:
+    static = refs / f"{name}.json"
+    numbers = json.loads(static.read_text())["numbers"] if static.exists() else None
+    if numbers is None:  # no static reference yet: as large as the largest known
+        cost[name] = None
+        continue
+    n_bf = sum(23 if z == 1 else 46 for z in numbers)
+    done = len(list((refs / name / "vib-internal").glob("*[+-].npz")))
+    calls = max(2 * (3 * len(numbers) - 6) - done, 1)
+    cost[name] = calls * n_bf ** 2.5
+top = max([c for c in cost.values() if c is not None], default=1.0)
+cost = {k: top if c is None else c for k, c in cost.items()}
+total = sum(cost.values())
+best = min(range(2 ** len(names)),  # every split (at most 15 molecules): the most even
+           key=lambda m: abs(total - 2 * sum(cost[n] for i, n in enumerate(names) if m >> i & 1)))
+halves = [[n for i, n in enumerate(names) if (best >> i & 1) == h] for h in (1, 0)]
+for half in sorted(halves, key=len, reverse=True):  # one molecule: the first line
+    print(" ".join(half))
+PYEOF
+}
+
+split_references() {  # phase 3: the remaining references in two processes, balanced by cost
+  local names a b
   names=$(remaining_references)
   [ -n "$names" ] || return 0
-  for n in $names; do
-    if [ $((k % 2)) = 0 ]; then a+=("$n"); else b+=("$n"); fi
-    k=$((k + 1))
-  done
+  # shellcheck disable=SC2086  # names: one word each
+  { read -r a; read -r b; } < <(reference_halves $names)
   stop_job references
   sleep 30  # its watcher stops the stage and commits what is finished
-  start_references references-a "${a[@]}"
-  [ ${#b[@]} = 0 ] || start_references references-b "${b[@]}"
+  # shellcheck disable=SC2086
+  start_references references-a $a
+  [ -z "$b" ] || start_references references-b $b
 }
 
 start_noaug_10x() {  # the learning curve's 10x non-augmented model (augmented vs not at equal data)
