@@ -99,14 +99,17 @@ class Structure:
     # ------------------------------------------------------------------ properties
     @property
     def n_cores(self) -> int:
+        """Number of atomic cores."""
         return len(self.numbers)
 
     @property
     def n_pairs(self) -> int:
+        """Number of electron pairs."""
         return len(self.pairs)
 
     @property
     def core_charges(self) -> np.ndarray:
+        """Charges (e) of the cores, (n_cores,)."""
         return core_charges(self.numbers)
 
     @property
@@ -126,6 +129,7 @@ class Structure:
 
     @property
     def volume(self) -> float:
+        """Cell volume (Å³); 0 for a molecule."""
         return float(abs(np.linalg.det(self.cell))) if self.pbc else 0.0
 
     def dipole(self) -> np.ndarray:

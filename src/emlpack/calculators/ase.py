@@ -215,6 +215,8 @@ class EMLPCalculator(Calculator):
         properties: list[str] | None = None,
         system_changes: list[str] = all_changes,
     ) -> None:
+        """Relax each member's pairs at ``atoms`` (unless ``relax_pairs=False``), evaluate the
+        members, and set ``self.results`` (ensemble mean and spread) and ``self.warnings``."""
         super().calculate(atoms, properties or ["energy"], system_changes)
         atoms = self.atoms
         field = self._field_of(atoms)

@@ -47,6 +47,9 @@ class ModelLabeler:
         self.level = level
 
     def __call__(self, structure: Structure, *, stress: bool = False) -> Structure:
+        """``structure`` with its pairs relaxed at fixed cores and the model's labels: energy (eV),
+        core forces (eV/Å), zero pair forces and, with ``stress`` for a crystal, stress (eV/Å³);
+        a failed relaxation raises :class:`ModelLabelingError`."""
         if stress and np.any(structure.field != 0):
             raise ValueError(f"{structure.source}: stress under a field is not defined")
         result = relax_pairs(self.model, structure, self.options)[0]

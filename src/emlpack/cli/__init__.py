@@ -25,6 +25,7 @@ _FILE_ERRORS = (FileNotFoundError, IsADirectoryError, NotADirectoryError, Permis
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``emlp`` argument parser with every command's sub-parser."""
     from emlpack import __version__
     from emlpack.cli import data, dynamics, properties, training
 
@@ -49,6 +50,8 @@ def one_line(exc: BaseException) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run ``emlp`` with ``argv`` (default: the command line); returns the exit status: the
+    command's own (0 on success), 2 for a user error, 130 after Ctrl-C."""
     args = build_parser().parse_args(argv)
     debug = getattr(args, "debug", False)
     # before torch is imported: idle OpenMP threads sleep (a busy machine otherwise makes every

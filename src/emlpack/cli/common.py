@@ -78,9 +78,11 @@ class Log:
         self.quiet = quiet
 
     def __call__(self, text: str) -> None:
+        """Print a result line to stdout."""
         print(text, flush=True)
 
     def progress(self, text: str) -> None:
+        """Print a progress line to stderr, unless ``quiet``."""
         if not self.quiet:
             print(text, file=sys.stderr, flush=True)
 
@@ -107,6 +109,7 @@ def add_model_argument(p: argparse.ArgumentParser, ensemble: bool = True) -> Non
 
 
 def add_structure_arguments(p: argparse.ArgumentParser) -> None:
+    """The STRUCTURE argument and ``--smiles``, ``--index``, ``--charge`` (e), ``--guess``."""
     p.add_argument("structure", nargs="?",
                    help="xyz/extxyz file; electron pairs as Es rows (guessed when absent)")
     p.add_argument("--smiles", help="a molecule from SMILES instead of a file (RDKit 3D"
@@ -120,6 +123,8 @@ def add_structure_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def add_field_arguments(p: argparse.ArgumentParser) -> None:
+    """``--field`` (V/Å) or ``--field-au`` (atomic units), and ``--force`` to accept a field
+    above :data:`MAX_FIELD_V_PER_A`."""
     g = p.add_mutually_exclusive_group()
     g.add_argument("--field", type=float, nargs=3, metavar=("EX", "EY", "EZ"),
                    help="homogeneous field, V/Å (default: the structure file's, else zero)")
@@ -130,12 +135,14 @@ def add_field_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def add_threads_argument(p: argparse.ArgumentParser, default: int | None = None) -> None:
+    """The ``--threads`` option, with ``default`` (None: the policy of :mod:`emlpack.threads`)."""
     p.add_argument("--threads", type=int, default=default,
                    help="threads (torch, PySCF)" + ("" if default else " (default: min(cores,"
                    " 4) unless OMP_NUM_THREADS is set; idle threads wait passively)"))
 
 
 def add_quiet_argument(p: argparse.ArgumentParser) -> None:
+    """The ``--quiet`` option (no progress messages)."""
     p.add_argument("--quiet", action="store_true", help="no progress messages")
 
 
@@ -170,6 +177,8 @@ def settings(args: argparse.Namespace) -> dict:
 
 
 def write_json(path: str | Path, data: dict) -> None:
+    """Write ``data`` to ``path`` as indented JSON, atomically (arrays as lists, other
+    non-JSON values as text)."""
     from emlpack._files import atomic_write
 
     atomic_write(Path(path), lambda fh: json.dump(data, fh, indent=1, default=_jsonable))
@@ -288,6 +297,7 @@ def energy_record(member: ModelMember, structure: Structure, model_energy: float
 
 
 def model_elements(model: EMLP) -> tuple[int, ...]:
+    """The atomic numbers of the elements the model was trained for."""
     return tuple(int(z) for z in model.config.elements)
 
 

@@ -14,6 +14,8 @@ if TYPE_CHECKING:
 
 
 def add_label(sub: Subparsers) -> None:
+    """Register ``emlp label``: sample molecules and label them with DFT into an HDF5 store
+    (resumable)."""
     p = add_parser(
         sub, "label", help="sample molecules and label them with DFT into an HDF5 store (resumable)"
     )
@@ -59,6 +61,8 @@ def add_label(sub: Subparsers) -> None:
 
 
 def add_relabel(sub: Subparsers) -> None:
+    """Register ``emlp relabel``: recompute energy, forces and Foster-Boys centres of an extxyz
+    file."""
     p = add_parser(
         sub, "relabel", help="recompute energy, forces and Foster-Boys centres of an extxyz file"
     )
@@ -91,6 +95,8 @@ def add_relabel(sub: Subparsers) -> None:
 
 
 def add_convert_reference(sub: Subparsers) -> None:
+    """Register ``emlp convert-reference``: convert a TensorFlow checkpoint of the authors'
+    reference code (no TF needed)."""
     p = add_parser(
         sub, "convert-reference",
         help="convert a TensorFlow checkpoint of the authors' reference code (no TF needed)",
@@ -113,6 +119,8 @@ def add_convert_reference(sub: Subparsers) -> None:
 
 
 def add_campaign(sub: Subparsers) -> None:
+    """Register ``emlp campaign``: a labeling campaign into immutable shards (``init``: molecule
+    list and split; ``run``: label, resumable; ``card``: regenerate README.md)."""
     p = add_parser(sub, "campaign", help="a labeling campaign into immutable shards"
                        " (init: molecule list and split; run: label, resumable; card)",
                    threads=False)

@@ -124,6 +124,9 @@ def generate_labels(store_path: Path, n_per_molecule: int = N_PER_MOLECULE,
 
 
 def demo_config(out: Path, minutes: float) -> dict:
+    """The demo's training config: the data in ``out/data.h5`` (hydride reference, split by
+    configuration), a small model with augmentation, at most ``minutes`` of training, output
+    in ``out/run``."""
     from emlpack.train.config import load_config
 
     return load_config(None, [

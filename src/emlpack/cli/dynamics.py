@@ -35,6 +35,8 @@ if TYPE_CHECKING:
 
 
 def add_md(sub: Subparsers) -> None:
+    """Register ``emlp md``: Born-Oppenheimer MD with relaxed electron pairs (NVT/NVE, optional
+    field); resumable."""
     p = add_parser(sub, "md", "Born-Oppenheimer MD with relaxed electron pairs (NVT/NVE,"
                    " optional field); resumable", threads_default=1)
     add_model_argument(p, ensemble=False)
@@ -203,6 +205,8 @@ def _md_log_handlers(folder: Path, quiet: bool):
 
 
 def add_md_analysis(sub: Subparsers) -> None:
+    """Register ``emlp md-analysis``: conserved-quantity stability of MD trajectories (slope,
+    max jump per atom; the paper's scatter plot)."""
     p = add_parser(sub, "md-analysis", "conserved-quantity stability of MD trajectories"
                    " (slope, max jump per atom; the paper's scatter plot)")
     p.add_argument("trajectories", nargs="+", help="extxyz trajectories written by 'emlp md'")
@@ -230,6 +234,8 @@ def add_md_analysis(sub: Subparsers) -> None:
 
 
 def add_md_ir(sub: Subparsers) -> None:
+    """Register ``emlp md-ir``: IR spectrum from the dipole autocorrelation of an MD trajectory
+    (JSON, optional PNG)."""
     p = add_parser(sub, "md-ir", "IR spectrum from the dipole autocorrelation of an MD"
                    " trajectory (JSON, optional PNG)")
     p.add_argument("trajectory", help="extxyz trajectory written by 'emlp md'")

@@ -84,18 +84,22 @@ class Prepared:
 
     @property
     def ensemble(self) -> bool:
+        """True for more than one member."""
         return len(self.members) > 1
 
     @property
     def member(self) -> ModelMember:
+        """The first member."""
         return self.members[0]
 
     @property
     def model(self) -> EMLP:
+        """The first member's model."""
         return self.members[0].model
 
     @property
     def structure(self) -> Structure:
+        """The first member's checked, relaxed structure."""
         return self.structures[0]
 
     def each(self) -> Iterator[tuple[int, ModelMember, Structure]]:
@@ -264,6 +268,8 @@ def relax(model: EMLP, s: Structure, level: str, args: argparse.Namespace, log: 
 
 # --------------------------------------------------------------------------- commands
 def add_optimize(sub: Subparsers) -> None:
+    """Register ``emlp optimize``: optimise the pairs, positions (and cell) of a structure;
+    writes extxyz and a JSON summary."""
     p = add_parser(sub, "optimize", "optimise the pairs, positions (and cell) of a structure;"
                    " writes extxyz and a JSON summary")
     _common(p, "positions", "optimized.xyz",
@@ -319,6 +325,7 @@ def add_optimize(sub: Subparsers) -> None:
 
 
 def add_ir(sub: Subparsers) -> None:
+    """Register ``emlp ir``: harmonic IR spectrum of a molecule (JSON, optional PNG)."""
     p = add_parser(sub, "ir", "harmonic IR spectrum of a molecule (JSON, optional PNG)")
     _common(p, "positions", "ir.json", "JSON file of the spectrum")
     p.add_argument("--plot", metavar="FILE.png", help="PNG plot of the spectrum")
@@ -395,12 +402,15 @@ def _read_reference(path: str):
 
 
 def argparse_suppress() -> str:
+    """``argparse.SUPPRESS``, which hides an option from ``--help`` (this module imports
+    argparse for type checking only)."""
     import argparse
 
     return argparse.SUPPRESS
 
 
 def add_polarizability(sub: Subparsers) -> None:
+    """Register ``emlp polarizability``: dipole and polarizabilities of a molecule (JSON)."""
     p = add_parser(sub, "polarizability", "dipole and polarizabilities of a molecule (JSON)")
     _common(p, "pairs", "polarizability.json", "JSON file of the dipole and polarizabilities")
 
@@ -446,6 +456,8 @@ def add_polarizability(sub: Subparsers) -> None:
 
 
 def add_response(sub: Subparsers) -> None:
+    """Register ``emlp response``: stiffness, dielectric and piezoelectric tensors of a crystal
+    (JSON)."""
     p = add_parser(sub, "response", "stiffness, dielectric and piezoelectric tensors of a"
                    " crystal (JSON)")
     _common(p, "positions", "response.json", "JSON file of the tensors")

@@ -38,6 +38,8 @@ def log_to_stdout() -> None:
 
 
 def add_train(sub: Subparsers) -> None:
+    """Register ``emlp train``: train an eMLP (YAML config + key=value overrides; data parallel
+    under torchrun)."""
     p = add_parser(sub, "train", help="train an eMLP (YAML config + key=value overrides;"
                        " data parallel under torchrun)")
     p.add_argument("config", help="YAML config, e.g. configs/small_cpu.yaml")
@@ -71,6 +73,8 @@ def add_train(sub: Subparsers) -> None:
 
 
 def add_evaluate(sub: Subparsers) -> None:
+    """Register ``emlp evaluate``: static/dynamic error tables and parity plots of trained
+    model(s) (an ensemble gives mean ± std)."""
     p = add_parser(sub, "evaluate", help="static/dynamic error tables and parity plots of"
                        " trained model(s) (an ensemble gives mean ± std)")
     p.add_argument("paths", nargs="+", metavar="MODEL... DATA",
@@ -108,6 +112,7 @@ def add_evaluate(sub: Subparsers) -> None:
 
 
 def add_demo(sub: Subparsers) -> None:
+    """Register ``emlp demo``: run the end-to-end demo on the embedded example data."""
     p = add_parser(sub, "demo", help="run the end-to-end demo on the embedded example data")
     p.add_argument("-o", "--output", default="demo_output", help="output folder")
 

@@ -53,11 +53,16 @@ class AugmentationConfig:
     singular_rcond: float = 1e-6
 
     def to_dict(self) -> dict:
+        """The settings as a plain dict (the config's ``augmentation`` section)."""
         return asdict(self)
 
 
 @dataclass
 class AugmentationInfo:
+    """What :func:`augment` did: displaced a pair (``augmented``; its index among the pairs,
+    ``pair``, and its displacement ``dR`` (3,), Å), dropped the torque condition (``singular``)
+    or left the configuration unchanged (``skipped``)."""
+
     augmented: bool = False
     singular: bool = False
     skipped: bool = False

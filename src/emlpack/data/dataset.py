@@ -207,6 +207,7 @@ class Collater:
         self.epoch = 0
 
     def __call__(self, items: Sequence[tuple[int, Structure]]) -> Batch:
+        """A :class:`Batch` of the ``(index, structure)`` items, each augmented first if enabled."""
         structures, indices = [], []
         n_aug = n_sing = 0
         aug = self.augmentation

@@ -104,6 +104,7 @@ class HydrideReference:
         self.energies = np.asarray(energies, dtype=np.float64)
 
     def coefficients(self, s: Structure) -> np.ndarray:
+        """Coefficients (4,) of eq. 19 for ``s`` (:func:`hydride_coefficients`)."""
         return hydride_coefficients(s.numbers, s.source, s.charge)
 
     def target(self, s: Structure) -> float:
@@ -120,6 +121,7 @@ class HydrideReference:
         return energy[:b] - coefficients.to(energy.dtype) @ live
 
     def to_metadata(self) -> dict:
+        """The reference as a plain dict for a checkpoint (:func:`reference_from_metadata`)."""
         return {
             "kind": self.kind,
             "energies": self.energies.tolist(),
@@ -142,17 +144,21 @@ class ConstantReference:
         self.value = float(value)
 
     def coefficients(self, s: Structure) -> np.ndarray:
+        """Zeros (4,): a constant reference uses no hydrides."""
         return np.zeros(len(HYDRIDES))
 
     def target(self, s: Structure) -> float:
+        """``E_DFT - value`` (eV)."""
         if s.energy is None:
             raise HydrideReferenceError(f"{s.source}: no energy label")
         return float(s.energy - self.value)
 
     def correct(self, energy: torch.Tensor, coefficients: torch.Tensor) -> torch.Tensor:
+        """The batch's energies (B,) as they are (eV): the model predicts the relative energy."""
         return energy[: coefficients.shape[0]]
 
     def to_metadata(self) -> dict:
+        """The reference as a plain dict for a checkpoint (:func:`reference_from_metadata`)."""
         return {"kind": self.kind, "value": self.value}
 
 

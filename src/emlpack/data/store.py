@@ -132,6 +132,7 @@ class DatasetStore:
         return self._file
 
     def close(self) -> None:
+        """Close the file and release the writer lock (only in the process that opened them)."""
         if self._file is not None and self._pid == os.getpid():
             self._file.close()
         self._file = None

@@ -134,6 +134,7 @@ class ConservedAnalysis:
         }
 
     def text(self) -> str:
+        """One line: classification, slope (eV/fs/atom), largest jump (eV/atom), frames used."""
         return (
             f"{self.source}: {self.classification}; slope {self.slope:.3e} eV/fs/atom,"
             f" max jump {self.max_jump:.3e} eV/atom (step {self.max_jump_step}),"

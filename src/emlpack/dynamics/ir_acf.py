@@ -160,6 +160,8 @@ class DipoleIRSpectrum:
         return float(np.trapezoid(self.absorbance[sel], self.wavenumbers[sel]))
 
     def as_dict(self, min_relative_height: float = 1e-3) -> dict:
+        """Plain dict for JSON (keys with units): settings, the peaks of :meth:`peaks`, the spectrum
+        and the autocorrelation function."""
         pos, height = self.peaks(min_relative_height)
         return {
             "method": "dipole autocorrelation",
@@ -181,6 +183,7 @@ class DipoleIRSpectrum:
         }
 
     def text(self, min_relative_height: float = 1e-3) -> str:
+        """The settings, then one line per peak: wavenumber (cm^-1), height (km/mol per cm^-1)."""
         pos, height = self.peaks(min_relative_height)
         lines = [f"IR from the dipole ACF: {self.n_frames} frames x {self.timestep:g} fs,"
                  f" resolution {self.resolution:.1f} cm^-1, T {self.temperature:.1f} K,"

@@ -46,14 +46,17 @@ class Graph:
 
     @property
     def n_structures(self) -> int:
+        """Number of structures B in the batch."""
         return int(self.cell.shape[0])
 
     @property
     def n_particles(self) -> int:
+        """Number of particles N (cores and pairs of all structures)."""
         return int(self.numbers.shape[0])
 
     @property
     def dtype(self) -> torch.dtype:
+        """Floating-point dtype of the positions."""
         return self.positions.dtype
 
     def to(

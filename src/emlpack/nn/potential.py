@@ -53,12 +53,14 @@ class ModelConfig:
     elements: tuple[int, ...] = (1, 6, 7, 8)
 
     def to_dict(self) -> dict:
+        """The hyperparameters as a plain dict (``elements`` as a list)."""
         d = asdict(self)
         d["elements"] = list(self.elements)
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> ModelConfig:
+        """The config of a :meth:`to_dict` dict; unknown keys raise ``ValueError``."""
         d = dict(d)
         if "elements" in d:
             d["elements"] = tuple(int(z) for z in d["elements"])
@@ -285,6 +287,7 @@ class EMLP(nn.Module):
         return result
 
     def n_parameters(self) -> int:
+        """Number of parameters (scalars) of the model."""
         return sum(p.numel() for p in self.parameters())
 
 

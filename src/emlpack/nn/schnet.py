@@ -203,6 +203,7 @@ class GaussianBasis(nn.Module):
         self.width = width
 
     def forward(self, r: torch.Tensor) -> torch.Tensor:
+        """Basis values (E, n_rbf) at the edge lengths ``r`` (E,) (Å)."""
         diff = r[:, None] - self.centers.to(r.dtype)
         return torch.exp(-0.5 * (diff / self.width) ** 2)
 
@@ -238,6 +239,8 @@ class Interaction(nn.Module):
         j: torch.Tensor,
         norm: float,
     ) -> torch.Tensor:
+        """Filters of the half-list edges from ``rbf`` and ``fcut``, then the residual
+        update of ``h``."""
         return self.update(h, self.filter(rbf, fcut), i, j, norm)
 
 

@@ -123,6 +123,7 @@ class RelaxResult:
 
     @property
     def failed(self) -> bool:
+        """True when ``reason`` names a failure."""
         return bool(self.reason)
 
 

@@ -98,6 +98,7 @@ class BatchedSolver:
     options: RelaxOptions = field(default_factory=RelaxOptions)
 
     def relax(self, model: EMLP, structure: Structure) -> RelaxResult:
+        """Relax the pairs of ``structure`` with :func:`~emlpack.pairs.relax.relax_pairs`."""
         return relax_pairs(model, structure, self.options)[0]
 
     def relax_many(self, model: EMLP, structures: Sequence[Structure]) -> list[RelaxResult]:
@@ -105,6 +106,7 @@ class BatchedSolver:
         return relax_pairs(model, structures, self.options)
 
     def reset(self) -> None:
+        """Nothing to forget (stateless)."""
         pass
 
 
@@ -165,6 +167,8 @@ class WarmStartSolver:
 
     # -------------------------------------------------------------------- state
     def reset(self) -> None:
+        """Forget the history, the carried models and a pending restart or curvature request (the
+        next call starts fresh); the counters and diagnostics stay."""
         self.history = []
         self.hessian = self.coupling = None
         self.model_error = 1.0
@@ -184,6 +188,7 @@ class WarmStartSolver:
         }
 
     def set_state(self, state: dict) -> None:
+        """Continue from a :meth:`state` (a pending restart or curvature request is cleared)."""
         self.history = [(np.array(c, float), np.array(p, float)) for c, p in state["history"]]
         self.hessian = None if state["hessian"] is None else state["hessian"].copy()
         coupling = state.get("coupling")
@@ -237,6 +242,9 @@ class WarmStartSolver:
 
     # -------------------------------------------------------------------- relaxation
     def relax(self, model: EMLP, structure: Structure) -> RelaxResult:
+        """Relax the pairs of the molecule ``structure`` at fixed cores, warm-started from the
+        earlier calls (see the module docstring), and keep a finite result in the history; the
+        result includes the core forces (eV/Å)."""
         if structure.pbc:
             raise ValueError(f"{type(self).__name__}: molecules only (no cell)")
         cores = structure.positions.copy()

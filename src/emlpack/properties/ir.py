@@ -66,6 +66,8 @@ class IRSpectrum:
         return grid, lorentzian(grid, self.frequencies, self.intensities, fwhm)
 
     def as_dict(self, fwhm: float = 10.0) -> dict:
+        """Plain dict for JSON: wavenumbers (cm^-1), intensities (km/mol), the spectrum broadened
+        with Lorentzians of ``fwhm`` (cm^-1) and the masses (amu)."""
         grid, curve = self.broadened(fwhm=fwhm)
         return {
             "frequencies_cm-1": self.frequencies.tolist(),
@@ -77,6 +79,7 @@ class IRSpectrum:
         }
 
     def text(self) -> str:
+        """One line per mode: wavenumber (cm^-1) and intensity (km/mol)."""
         lines = ["mode  wavenumber (cm^-1)  intensity (km/mol)"]
         lines += [f"{k:4d}  {f:18.2f}  {i:18.3f}"
                   for k, (f, i) in enumerate(zip(self.frequencies, self.intensities, strict=True))]

@@ -72,6 +72,8 @@ class OptimizeResult:
                 "volume": s.volume}
 
     def text(self) -> str:
+        """Summary lines: convergence, energy (eV), largest force (eV/Å); for a crystal the largest
+        stress (GPa) and the lattice; the lowest internal Hessian eigenvalue when known."""
         lines = [
             f"converged: {self.converged} after {self.iterations} iterations"
             + (f" ({self.reason})" if self.reason else ""),

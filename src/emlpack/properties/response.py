@@ -102,6 +102,8 @@ class MoleculeResponse:
     polarizability_relaxed: np.ndarray | None = None
 
     def as_dict(self) -> dict:
+        """Plain dict for JSON: the dipole (e·Å, Debye, norm in Debye) and each polarizability in
+        e·Å²/V, Å³ and bohr³, with its isotropic mean (bohr³)."""
         out = {
             "dipole_e_A": self.dipole.tolist(),
             "dipole_debye": (self.dipole * E_A_IN_DEBYE).tolist(),
@@ -120,6 +122,7 @@ class MoleculeResponse:
         return out
 
     def text(self) -> str:
+        """Summary lines: the dipole (e·Å, Debye) and the polarizabilities (bohr³)."""
         d = self.as_dict()
         lines = [
             "dipole (e·Å):   " + _vec(self.dipole),
@@ -192,6 +195,7 @@ class CrystalResponse(VoigtViews):
 
     @property
     def piezo_improper(self) -> np.ndarray:
+        """Improper piezoelectric tensor e_ijk (3, 3, 3), e/Å² (:func:`improper_piezo`)."""
         return improper_piezo(self.piezo, self.polarization)
 
     def as_dict(self) -> dict:

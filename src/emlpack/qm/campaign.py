@@ -265,6 +265,7 @@ def work_store_path(folder: str | Path, recipe: dict) -> Path:
 
 
 def load_settings(folder: str | Path) -> dict:
+    """The campaign's settings: ``campaign.yaml`` of ``folder`` (``emlp campaign init``)."""
     path = Path(folder) / CAMPAIGN_FILE
     if not path.is_file():
         raise StoreError(f"{folder}: no {CAMPAIGN_FILE} (run `emlp campaign init` first)")

@@ -82,6 +82,8 @@ class LabelerCalculator(Calculator):
 
     def calculate(self, atoms: Atoms | None = None, properties: Sequence[str] = ("energy",),
                   system_changes: Sequence[str] = all_changes) -> None:
+        """Label the cores and cell of ``atoms`` (or take the cached label of that geometry), the
+        pairs started from the last label's; set energy (eV), forces (eV/Å), stress (eV/Å³)."""
         super().calculate(atoms, properties, system_changes)
         positions = np.array(self.atoms.get_positions())
         cell = np.array(self.atoms.get_cell())

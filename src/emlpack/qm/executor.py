@@ -111,6 +111,7 @@ class Executor:
             yield fut.result()
 
     def close(self) -> None:
+        """Close the Dask client and the local cluster it started, if any (serial: nothing)."""
         if self._client is not None:
             cluster = getattr(self._client, "cluster", None)
             self._client.close()

@@ -355,6 +355,9 @@ def label_task(config: Configuration, level: str, boys_starts: int, seed: int,
 # ---------------------------------------------------------------------------------- driver
 @dataclass
 class LabelingSummary:
+    """Outcome of a labeling run: the store, its records, new labels, new failures,
+    configurations already done, input entries left out (reasons), failures and wall time (s)."""
+
     store: str
     n_records: int = 0
     n_new: int = 0
@@ -374,6 +377,7 @@ class LabelingSummary:
         self.wall_time = time.perf_counter() - t0
 
     def text(self) -> str:
+        """The report ``emlp label`` prints: counts, skipped molecules and the first 20 failures."""
         lines = [
             f"{self.store}: {self.n_records} records ({self.n_new} new, {self.n_failed_new} new"
             f" failures, {self.n_skipped_done} already done) in {self.wall_time:.1f} s"
@@ -386,6 +390,7 @@ class LabelingSummary:
 
 
 def expected_keys(name: str, recipe: dict) -> list[str]:
+    """Store keys ``NAME/KIND/NNNN`` of every configuration the recipe asks of molecule ``name``."""
     return [f"{name}/{s['kind']}/{i:04d}" for s in recipe["samples"] for i in range(s["count"])]
 
 

@@ -43,6 +43,7 @@ class Level:
         return text
 
     def as_dict(self) -> dict:
+        """The settings as a plain dict."""
         return asdict(self)
 
 

@@ -136,6 +136,7 @@ class LabelResult:
 
     @property
     def ok(self) -> bool:
+        """True when the configuration was labeled."""
         return self.status == "ok"
 
     @property

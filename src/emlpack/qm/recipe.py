@@ -113,6 +113,9 @@ def rescale_counts(samples: list[dict], total: int) -> list[dict]:
 
 
 def validate_recipe(recipe: dict) -> None:
+    """Refuse (:class:`SamplingError`) a sample without ``kind`` and ``count``, a duplicate kind or
+    one containing ``/``, a negative count or temperature, ``field_max_au`` outside
+    [0, 0.05] au, or an unknown ``field_distribution``."""
     kinds = set()
     for s in recipe.get("samples", []):
         if "kind" not in s or "count" not in s:

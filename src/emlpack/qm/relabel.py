@@ -45,6 +45,9 @@ class FrameComparison:
 
 @dataclass
 class RelabelReport:
+    """Outcome of :func:`relabel`: frames relabeled and failed, the failures (source, reason),
+    the comparisons with the input's labels and notes (Foster-Boys starts that disagreed)."""
+
     n_frames: int = 0
     n_failed: int = 0
     failures: list[dict] = field(default_factory=list)
@@ -52,6 +55,8 @@ class RelabelReport:
     notes: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
+        """The report ``emlp relabel`` prints: frames relabeled, largest differences from the
+        input's labels, mean time per frame, failures and notes."""
         lines = [f"{self.n_frames - self.n_failed}/{self.n_frames} frames relabeled"]
         cmp_ = [c for c in self.comparisons if np.isfinite(c.d_energy)]
         if cmp_:

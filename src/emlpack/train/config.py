@@ -68,6 +68,7 @@ class ConfigError(EmlpackError, ValueError):
 
 
 def parse_override(text: str) -> tuple[list[str], object]:
+    """``(key path, value)`` of a ``key=value`` override; the value parsed as YAML (empty: None)."""
     if "=" not in text:
         raise ConfigError(f"override {text!r}: expected key=value (e.g. training.max_epochs=5)")
     key, value = text.split("=", 1)
@@ -118,6 +119,9 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
 
 
 def validate(cfg: dict) -> None:
+    """Refuse (:class:`ConfigError`) an unknown split or reference, a dtype other than float32 or
+    float64, a batch size or epoch limit that is not a positive integer, and a bad model
+    section."""
     d, t = cfg["data"], cfg["training"]
     if d["split"] not in ("auto", "molecule", "configuration", "card"):
         raise ConfigError(f"data.split must be auto, molecule, configuration or card, got"
@@ -137,4 +141,5 @@ def validate(cfg: dict) -> None:
 
 
 def dump_config(cfg: dict, path: str | Path) -> None:
+    """Write ``cfg`` to ``path`` as YAML (atomically)."""
     write_text_atomic(path, yaml.safe_dump(cfg, sort_keys=False))

@@ -57,6 +57,7 @@ class LossWeights:
     stress: float = 0.1
 
     def to_dict(self) -> dict:
+        """The weights as a plain dict (the config's ``loss`` section)."""
         return asdict(self)
 
 
@@ -113,6 +114,8 @@ class Metrics:
         self.field = [0.0, 0.0]  # pairs: sum r . qE, sum |qE|^2 (field_response_slope)
 
     def update(self, pred: dict, batch: Batch) -> None:
+        """Add the errors of ``pred`` against the labels of ``batch`` (and the pairs' field-response
+        sums)."""
         with torch.no_grad():
             e = (pred["energy"] - batch.energy) / batch.n_cores.to(batch.energy.dtype)
             self._add("energy", e)
@@ -136,16 +139,20 @@ class Metrics:
         s[2] += float(d.numel())
 
     def tensor(self) -> torch.Tensor:
+        """The accumulated sums as one float64 tensor (for an all-reduce; :meth:`load_tensor`)."""
         return torch.tensor([v for t in TERMS for v in self.sums[t]] + self.field,
                             dtype=torch.float64)
 
     def load_tensor(self, t: torch.Tensor) -> None:
+        """Replace the sums by those of ``t``, laid out as :meth:`tensor`'s."""
         vals = t.tolist()
         for k, name in enumerate(TERMS):
             self.sums[name] = vals[3 * k : 3 * k + 3]
         self.field = vals[3 * len(TERMS):]
 
     def result(self) -> dict[str, float]:
+        """``NAME_mae`` and ``NAME_rmse`` of each quantity seen (units: see the class docstring) and
+        ``pair_field_slope`` (:func:`field_response_slope`)."""
         out = {}
         for name, (a, s, n) in self.sums.items():
             if n > 0:

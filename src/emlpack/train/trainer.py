@@ -212,6 +212,8 @@ class Trainer:
 
     # ------------------------------------------------------------------ state
     def metadata(self, **extra) -> dict:
+        """Checkpoint metadata: reference, config, data path and size, split, training domain, epoch
+        and ``extra`` (e.g. ``val`` metrics, ``training`` state)."""
         return {"reference": self.reference.to_metadata(), "config": self.cfg,
                 "data_path": str(self.cfg["data"]["path"]),
                 "n_structures": len(self.structures),
@@ -226,6 +228,8 @@ class Trainer:
         return self._training_domain
 
     def training_state(self) -> dict:
+        """What resuming needs (saved in last.pt): optimizer and scheduler states, counters, best
+        validation loss, torch RNG state and world size."""
         return {
             "optimizer": self.optimizer.state_dict(),
             "scheduler": self.scheduler.state_dict(),
@@ -235,6 +239,8 @@ class Trainer:
         }
 
     def resume(self, path: Path) -> None:
+        """Continue from the checkpoint ``path`` (last.pt): weights, optimizer, scheduler, counters
+        and RNG state; a different model or data config or data size raises ``ValueError``."""
         payload = read_checkpoint(path)
         saved = payload["metadata"].get("config", {})
         for section in ("model", "data"):
@@ -421,6 +427,8 @@ class Trainer:
         return out
 
     def validate(self) -> dict:
+        """Metrics on the validation split, summed over ranks (:meth:`Metrics.result`), and ``loss``
+        (inf when there is nothing to validate)."""
         self.model.eval()
         metrics = Metrics()
         for batch in self._validation_batches():

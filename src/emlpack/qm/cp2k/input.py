@@ -89,6 +89,7 @@ class CP2KSettings:
         return f"cp2k/{self.xc.lower()}{disp}/{self.basis.lower()}/{self.cutoff_ry:g}ry"
 
     def to_dict(self) -> dict:
+        """The settings as a plain dict."""
         return asdict(self)
 
 

@@ -153,6 +153,8 @@ class CP2KLabeler:
         self._wfn[composition] = target
 
     def command(self) -> list[str]:
+        """The CP2K command line (``-i emlp.inp -o emlp.out``), under ``mpirun -np n_processes``
+        when a launcher is set."""
         s = self.settings
         cmd = [s.cp2k, "-i", "emlp.inp", "-o", "emlp.out"]
         if s.mpirun:
