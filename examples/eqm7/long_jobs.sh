@@ -91,43 +91,14 @@ rows = csv.DictReader(open('$DATA/molecules.csv'))
 print(' '.join(r['name'] for r in rows if r['split'] == 'test' and not done(r['name'])))"
 }
 
-reference_halves() {  # the remaining references as two lines of names, balanced by cost
-  # cost of a molecule: its force calls still to do x (aug-cc-pVTZ basis functions)^2.5, from
-  # the committed static reference (23 functions per H, 46 per C, N, O); the most even split;
-  # each half in the card's order
-  PYTHONPATH=src "$PY" - "$DATA/references/pbe0_aug-cc-pvtz" "$@" <<'PYEOF'
-import json, sys
-from pathlib import Path
-
-refs, names = Path(sys.argv[1]), sys.argv[2:]
-cost = {}
-for name in names:
-    static = refs / f"{name}.json"
-    numbers = json.loads(static.read_text())["numbers"] if static.exists() else None
-    if numbers is None:  # no static reference yet: as large as the largest known
-        cost[name] = None
-        continue
-    n_bf = sum(23 if z == 1 else 46 for z in numbers)
-    done = len(list((refs / name / "vib-internal").glob("*[+-].npz")))
-    calls = max(2 * (3 * len(numbers) - 6) - done, 1)
-    cost[name] = calls * n_bf ** 2.5
-top = max([c for c in cost.values() if c is not None], default=1.0)
-cost = {k: top if c is None else c for k, c in cost.items()}
-total = sum(cost.values())
-best = min(range(2 ** len(names)),  # every split (at most 15 molecules): the most even
-           key=lambda m: abs(total - 2 * sum(cost[n] for i, n in enumerate(names) if m >> i & 1)))
-halves = [[n for i, n in enumerate(names) if (best >> i & 1) == h] for h in (1, 0)]
-for half in sorted(halves, key=len, reverse=True):  # one molecule: the first line
-    print(" ".join(half))
-PYEOF
-}
-
 split_references() {  # phase 3: the remaining references in two processes, balanced by cost
+  # (reference_split.py: calls left x basis functions^2.5, the most even split)
   local names a b
   names=$(remaining_references)
   [ -n "$names" ] || return 0
   # shellcheck disable=SC2086  # names: one word each
-  { read -r a; read -r b; } < <(reference_halves $names)
+  { read -r a; read -r b; } < <("$PY" examples/eqm7/reference_split.py \
+    "$DATA/references/pbe0_aug-cc-pvtz" $names)
   stop_job references
   sleep 30  # its watcher stops the stage and commits what is finished
   # shellcheck disable=SC2086
