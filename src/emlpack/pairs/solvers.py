@@ -107,7 +107,6 @@ class BatchedSolver:
 
     def reset(self) -> None:
         """Nothing to forget (stateless)."""
-        pass
 
 
 #: "corrected" stops when its estimate of the residual after the final (unevaluated) Newton
