@@ -13,7 +13,7 @@
 #   - at nice 10, the non-augmented model of the learning curve's 10x point (shards 0000-0078).
 # Phase 2 starts once the target is reached. It runs the final study's 8 models (run_study.py
 # train, config.yaml's schedule) in two training processes, seeds 0, 2 and seeds 1, 3, with the
-# augmented models first, beside the references. Snapshots are committed every 30 minutes to
+# augmented models first, beside the references at nice 10. Snapshots are committed every 30 minutes to
 # examples/eqm7/snapshots/final.
 # Phase 2b starts when all 8 models have finished: run_study.py evaluate polarizability md
 # table (results in runs/eqm7/results, not committed: a session reviews them) in one process,
@@ -135,6 +135,24 @@ start_final() {  # the final study's models, two processes
     echo $! > "$PIDS/final-$k.pid"
     echo "final models, seeds $seeds: PID $!, log runs/final-$k.log"
   done
+  # the trainings first: the references take what they leave until phase 2b (the same CPU in
+  # all, so the final models, and all of the study but the IR, come hours earlier)
+  renice_job references 10
+}
+
+renice_job() {  # renice_job JOB N: every thread of the job's processes (its children too)
+  local queue p t
+  running "$1" || return 0
+  queue=("$(cat "$PIDS/$1.pid")")
+  while [ ${#queue[@]} -gt 0 ]; do
+    p=${queue[0]}
+    queue=("${queue[@]:1}")
+    for t in /proc/"$p"/task/*; do  # Linux: a nice value belongs to a thread
+      renice -n "$2" -p "${t##*/}" > /dev/null 2>&1 || true
+    done
+    # shellcheck disable=SC2207  # PIDs: one word each
+    queue+=($(pgrep -P "$p" || true))
+  done
 }
 
 final_trained() {  # every final model has finished (run_study.py train writes done.json)
@@ -170,6 +188,7 @@ watch() {  # phase 1 -> 2 -> 3 as the jobs end
   fi
   start_final
   while running final-0 || running final-1; do sleep 60; done
+  renice_job references 0
   final_trained || return 0  # a training stopped short: a session looks
   start_study_eval
   while running study-eval; do sleep 60; done
