@@ -248,6 +248,29 @@ print(f'references: {len(left)} harmonic references left' + (': ' + ', '.join(ca
     for d in "$FINAL_SNAPSHOTS"/*/seed*; do
       if [ -d "$d" ]; then echo "$d: $(ls "$d" | tail -1)"; fi
     done
+    # the final models here: steps (of config.yaml's), the pace of the last 10 epochs, hours left
+    PYTHONPATH=src "$PY" - "$WORK/models" examples/eqm7/config.yaml <<'PYEOF'
+import csv, sys
+from pathlib import Path
+
+import yaml
+
+steps = yaml.safe_load(Path(sys.argv[2]).read_text())["training"]["steps"]
+for log in sorted(Path(sys.argv[1]).glob("*/seed*/log.csv")):
+    rows = list(csv.DictReader(log.open()))
+    if not rows:
+        continue
+    run, step = log.parent, int(rows[-1]["step"])
+    if (run / "done.json").exists():
+        print(f"{run}: done, {step} steps")
+        continue
+    last = rows[-10:]
+    per_step = sum(float(r["epoch_time"]) for r in last) / max(
+        int(last[-1]["step"]) - int(rows[-len(last) - 1]["step"]) if len(rows) > len(last)
+        else int(last[-1]["step"]), 1)
+    print(f"{run}: step {step} of {steps}, {per_step:.3f} s/step lately,"
+          f" ~{(steps - step) * per_step / 3600:.1f} h left at that pace")
+PYEOF
     ;;
   *)
     echo "usage: $0 [start|status|stop]" >&2
