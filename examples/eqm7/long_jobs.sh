@@ -13,14 +13,14 @@
 #   - at nice 10, the non-augmented model of the learning curve's 10x point (shards 0000-0078).
 # Phase 2 starts once the target is reached. It runs the final study's 8 models (run_study.py
 # train, config.yaml's schedule) in two training processes, seeds 0, 2 and seeds 1, 3, with the
-# augmented models first, beside the references at nice 10. Snapshots are committed every 30 minutes to
-# examples/eqm7/snapshots/final.
+# augmented models first, beside the references at nice 10. Snapshots are committed every 30
+# minutes to examples/eqm7/snapshots/final.
 # Phase 2b starts when all 8 models have finished: run_study.py evaluate polarizability md
 # table (results in runs/eqm7/results, not committed: a session reviews them) in one process,
 # beside the references.
 # Phase 3 starts when that has ended. The references still to compute are split between two
-# processes (balanced by their force calls still to do and the size of each call), one per core; the 10x non-augmented
-# model (stopped in phase 2) goes on at nice 10.
+# processes, one per core, balanced by their force calls still to do and the size of each call
+# (reference_split.py); the 10x non-augmented model (stopped in phase 2) goes on at nice 10.
 # A watcher moves from one phase to the next as the jobs end, without waiting for a session.
 #
 # Each job runs on its own copy of src/ (/tmp/emlp-JOB), so editing the code does not change a
