@@ -4,10 +4,12 @@ ensembles with spreads, pretrained names, and the calculator's warnings."""
 from __future__ import annotations
 
 import copy
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
+from ase.calculators.calculator import CalculationFailed
 
 from emlpack.calculators.ase import EMLPCalculator
 from emlpack.calculators.ensemble import (
@@ -21,6 +23,7 @@ from emlpack.data.references import HydrideReference, hydride_coefficients, load
 from emlpack.io import read_structures, structure_to_atoms
 from emlpack.nn.checkpoint import save_model
 from emlpack.pairs.relax import RelaxOptions
+from emlpack.pairs.solvers import BatchedSolver
 from emlpack.pretrained import (
     PretrainedError,
     available,
@@ -127,6 +130,62 @@ def test_relaxed_ensemble_members_relax_their_own_pairs(models):
     assert np.abs(r[0].pairs - r[1].pairs).max() > 1e-5  # different minima
     np.testing.assert_allclose(atoms.calc.results["electron_pairs"],
                                (r[0].pairs + r[1].pairs) / 2, atol=1e-12)
+
+
+class _FailingSolver:
+    """A pair solver whose every relaxation fails (counts its calls)."""
+
+    calls = 0
+
+    def relax(self, model, structure):
+        self.calls += 1
+        return replace(BatchedSolver(RelaxOptions(fmax=1e-6)).relax(model, structure),
+                       reason="stub failure")
+
+    def reset(self):
+        pass
+
+
+def test_a_failed_member_raises_or_is_dropped_for_the_molecule(models):
+    methane = structure_to_atoms(read_structures(shared_path("data/eqm7_pbe0_subset.xyz"),
+                                                 index=63)[0])
+    options = RelaxOptions(fmax=1e-6)
+    methane.calc = EMLPCalculator(models[0], relax_options=options)
+    alone = methane.get_potential_energy()
+
+    methane.calc = EMLPCalculator(list(models), relax_options=options)  # the default: raise
+    methane.calc.pair_solvers[1] = _FailingSolver()
+    with pytest.raises(CalculationFailed, match=r"\(model 1: .*stub failure"):
+        methane.get_potential_energy()
+
+    calc = EMLPCalculator(list(models), relax_options=options, failed_members="drop")
+    failing = calc.pair_solvers[1] = _FailingSolver()
+    methane.calc = calc
+    assert methane.get_potential_energy() == pytest.approx(alone, abs=1e-9)
+    assert calc.results["energy_std"] == 0.0 and calc.dropped == {1: "stub failure"}
+    assert any("model 1 (" in w and "left out" in w and "1 of 2 models" in w
+               for w in calc.warnings)
+    moved = methane.copy()
+    moved.positions[1] += [0.01, 0.0, 0.0]
+    moved.calc = calc
+    moved.get_potential_energy()  # the same molecule: member 1 stays out, still said
+    assert failing.calls == 1 and len(calc.relax_results) == 1
+    assert any("left out" in w for w in calc.warnings)
+
+    ethene = structure_to_atoms(read_structures(shared_path("data/eqm7_pbe0_subset.xyz"),
+                                                index=200)[0])
+    calc.pair_solvers[1] = BatchedSolver(options)
+    ethene.calc = calc
+    ethene.get_potential_energy()  # another molecule: every member again
+    assert calc.dropped == {} and calc.results["energy_std"] > 0
+    assert not any("left out" in w for w in calc.warnings)
+
+    calc.pair_solvers = [_FailingSolver(), _FailingSolver()]
+    methane.calc = calc
+    with pytest.raises(CalculationFailed, match="every other member had failed before"):
+        methane.get_potential_energy()
+    with pytest.raises(ValueError, match="failed_members"):
+        EMLPCalculator(models[0], failed_members="ignore")
 
 
 def test_callers_model_is_not_converted(models):

@@ -25,8 +25,12 @@ cores (eV/Å; at relaxed pairs these are the Born-Oppenheimer forces), ``stress`
 Voigt, ASE sign), ``dipole`` (molecules: sum q r over cores and pairs, e·Å),
 ``electron_pairs`` (Å), ``pair_forces`` (eV/Å), and ``energy_std``, ``forces_std``,
 ``dipole_std``, ``stress_std``. Relaxation diagnostics are in ``calc.relax_result`` (the first
-member's) and ``calc.relax_results``. A failed relaxation raises
-:class:`ase.calculators.calculator.CalculationFailed` naming the reason.
+member's) and ``calc.relax_results`` (one per member relaxed in the last call). A failed
+relaxation raises :class:`ase.calculators.calculator.CalculationFailed` naming the reason; with
+``failed_members="drop"`` an ensemble instead leaves the failed member out, of this result and
+of every later one of the same molecule (``calc.dropped``: member index -> reason), so that the
+results stay one smooth surface, and says so in every result's warnings (as the ``emlp``
+commands do); it raises only when every member has failed.
 
 Warnings (``calc.warnings``, also logged) say when a result should not be trusted: an element
 the models were not trained on, a molecule with more heavy atoms than the largest training
@@ -111,9 +115,16 @@ class EMLPCalculator(Calculator):
         force_spread_warning: float = FORCE_SPREAD_WARNING,
         check_bonding: bool = True,
         pair_solver: PairSolver | None = None,
+        failed_members: str = "raise",
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
+        if failed_members not in ("raise", "drop"):
+            raise ValueError(f"failed_members: 'raise' or 'drop', got {failed_members!r}")
+        self.failed_members = failed_members
+        #: ``failed_members="drop"``: the members left out (index -> reason), until the atomic
+        #: numbers change or :meth:`reset`
+        self.dropped: dict[int, str] = {}
         self.ensemble = as_ensemble(model, dtype)
         self.model = self.ensemble.members[0].model
         self.dtype = dtype
@@ -173,6 +184,7 @@ class EMLPCalculator(Calculator):
         """Forget results, the warm start and the solvers' warm-start state."""
         super().reset()
         self._warm = None
+        self.dropped = {}
         for solver in self.pair_solvers:
             solver.reset()
 
@@ -184,8 +196,9 @@ class EMLPCalculator(Calculator):
         self.results = copy.deepcopy(results)
         self._last_field = self._field_of(atoms).copy()
 
-    def _start_pairs(self, atoms: Atoms) -> list[np.ndarray]:
-        """Starting pairs (Å) of every member: warm (carried with the cores) or given/guessed."""
+    def _start_pairs(self, atoms: Atoms) -> list[np.ndarray | None]:
+        """Starting pairs (Å) of every member: warm (carried with the cores) or given/guessed
+        (None for a member dropped since the warm start)."""
         n = len(self.ensemble)
         given = atoms.info.get(PAIRS_KEY)
         given = None if given is None else np.asarray(given, float).reshape(-1, 3)
@@ -197,7 +210,8 @@ class EMLPCalculator(Calculator):
             if np.array_equal(numbers, atoms.numbers):
                 # follow the cell and the cores: each pair moves with its nearest core
                 new_cell = atoms.cell[:] if np.any(atoms.pbc) else None
-                return [carry_pairs(pairs, cores, atoms.positions, cell, new_cell, atoms.pbc)
+                return [None if pairs is None else  # a dropped member
+                        carry_pairs(pairs, cores, atoms.positions, cell, new_cell, atoms.pbc)
                         for pairs in member_pairs]
         if given is not None:
             self._given_pairs = given.copy()
@@ -223,12 +237,18 @@ class EMLPCalculator(Calculator):
         warnings = list(self.ensemble.notices) + self.ensemble.domain_warnings(
             atoms.numbers, atoms.positions, periodic=bool(np.any(atoms.pbc)))
         once = set(warnings)  # the same at every call: logged at the first
+        if self._warm is not None and not np.array_equal(self._warm[0], atoms.numbers):
+            self.dropped = {}  # another molecule: every member again
         starts = self._start_pairs(atoms)
         energies, relative, raw, outs, pairs_of, dipoles = [], [], [], [], [], []
+        member_pairs: list[np.ndarray | None] = []  # per member, for the next warm start
         self.relax_results = []
         self.relax_result = None
         members = zip(self.ensemble.members, starts, self.pair_solvers, strict=True)
         for k, (member, start, solver) in enumerate(members):
+            if k in self.dropped:
+                member_pairs.append(None)
+                continue
             structure = atoms_to_structure(atoms, pairs=start, field=field,
                                            source="EMLPCalculator")
             out = None
@@ -238,10 +258,16 @@ class EMLPCalculator(Calculator):
                 self.relax_result = self.relax_results[0]
                 if result.reason:
                     which = f" (model {k}: {member.source})" if len(self.ensemble) > 1 else ""
-                    raise CalculationFailed(
-                        f"electron-pair relaxation failed for {atoms.get_chemical_formula()}"
-                        f"{which}: {result.reason}"
-                    )
+                    failure = (f"electron-pair relaxation failed for"
+                               f" {atoms.get_chemical_formula()}{which}: {result.reason}")
+                    if self.failed_members == "raise" or len(self.dropped) + 1 == len(
+                            self.ensemble):
+                        raise CalculationFailed(failure + (
+                            "; every other member had failed before" if self.dropped else ""))
+                    self.dropped[k] = result.reason
+                    log.warning("%s; the member is left out", failure)
+                    member_pairs.append(None)
+                    continue
                 structure = structure.copy(pairs=result.pairs)
                 if result.forces is not None and not structure.pbc:
                     # the solver evaluated the model at its result: no further evaluation
@@ -261,9 +287,16 @@ class EMLPCalculator(Calculator):
             relative.append(out["energy"] + rel_shift)
             outs.append(out)
             pairs_of.append(structure.pairs.copy())
+            member_pairs.append(pairs_of[-1])
             if not structure.pbc:
                 dipoles.append(structure.dipole())
         self.relax_result = self.relax_results[0] if self.relax_results else None
+        for k, reason in sorted(self.dropped.items()):
+            text = (f"model {k} ({self.ensemble.members[k].source}) left out: its electron-pair"
+                    f" relaxation failed ({reason}); the results are the mean and spread of"
+                    f" {len(outs)} of {len(self.ensemble)} models")
+            warnings.append(text)
+            once.add(text)
         forces = np.array([o["forces"] for o in outs])
         self.results = {
             "energy": float(np.mean(energies)),
@@ -295,7 +328,7 @@ class EMLPCalculator(Calculator):
         self.warnings = warnings
         self._last_field = field.copy()
         self._warm = (atoms.numbers.copy(), atoms.positions.copy(),
-                      atoms.cell[:].copy() if np.any(atoms.pbc) else None, pairs_of)
+                      atoms.cell[:].copy() if np.any(atoms.pbc) else None, member_pairs)
 
     def _spread_warnings(self, n_atoms: int) -> list[str]:
         if len(self.ensemble) < 2:
