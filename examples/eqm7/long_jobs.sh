@@ -264,10 +264,8 @@ for log in sorted(Path(sys.argv[1]).glob("*/seed*/log.csv")):
     if (run / "done.json").exists():
         print(f"{run}: done, {step} steps")
         continue
-    last = rows[-10:]
-    per_step = sum(float(r["epoch_time"]) for r in last) / max(
-        int(last[-1]["step"]) - int(rows[-len(last) - 1]["step"]) if len(rows) > len(last)
-        else int(last[-1]["step"]), 1)
+    before = int(rows[-11]["step"]) if len(rows) > 10 else 0  # the step before the last 10
+    per_step = sum(float(r["epoch_time"]) for r in rows[-10:]) / max(step - before, 1)
     print(f"{run}: step {step} of {steps}, {per_step:.3f} s/step lately,"
           f" ~{(steps - step) * per_step / 3600:.1f} h left at that pace")
 PYEOF
