@@ -90,16 +90,14 @@ STIFF_KEYS = ("11", "22", "33", "44", "55", "66", "12", "13", "23", "15", "25", 
 
 # ---------------------------------------------------------------------- config
 def load_config(path: str | Path, overrides: list[str] = ()) -> dict:
-    cfg = yaml.safe_load(Path(path).read_text()) or {}
-    for text in overrides:
-        if "=" not in text:
-            raise SystemExit(f"override {text!r}: expected key=value")
-        key, value = text.split("=", 1)
-        node = cfg
-        parts = key.split(".")
-        for p in parts[:-1]:
-            node = node.setdefault(p, {})
-        node[parts[-1]] = yaml.safe_load(value)
+    """config.yaml with ``key=value`` overrides."""
+    from emlpack.overrides import OverrideError, apply_overrides, load_yaml
+
+    cfg = load_yaml(Path(path).read_text()) or {}
+    try:
+        apply_overrides(cfg, overrides)
+    except OverrideError as exc:
+        raise SystemExit(str(exc)) from None
     cfg.setdefault("workdir", "runs/beta_glycine")
     cfg.setdefault("molecule_id", "beta-glycine")
     cfg.setdefault("seed", 0)

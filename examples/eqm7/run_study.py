@@ -55,7 +55,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]  # the project
@@ -100,20 +99,19 @@ IR_MOLECULES = {"qm7-0011": "aziridine", "extra-0000": "3-(methylamino)but-2-ena
 
 # ---------------------------------------------------------------------- config
 def load_config(path: str | Path, overrides: list[str] = ()) -> dict:
-    cfg = yaml.safe_load(Path(path).read_text()) or {}
-    for text in overrides:
-        if "=" not in text:
-            raise SystemExit(f"override {text!r}: expected key=value")
-        key, value = text.split("=", 1)
-        if key.startswith("train."):  # training-config override, passed through
-            cfg.setdefault("training", {}).setdefault("overrides", []).append(
-                f"{key[len('train.'):]}={value}")
-            continue
-        node = cfg
-        parts = key.split(".")
-        for p in parts[:-1]:
-            node = node.setdefault(p, {})
-        node[parts[-1]] = yaml.safe_load(value)
+    """config.yaml with ``key=value`` overrides; ``train.KEY=VALUE`` goes to the training
+    configuration of every model (``training.overrides``)."""
+    from emlpack.overrides import OverrideError, apply_overrides, load_yaml
+
+    cfg = load_yaml(Path(path).read_text()) or {}
+    try:
+        apply_overrides(cfg, [t for t in overrides if not t.startswith("train.")])
+    except OverrideError as exc:
+        raise SystemExit(str(exc)) from None
+    train = [t[len("train."):] for t in overrides if t.startswith("train.")]
+    if train:
+        t = cfg.setdefault("training", {})
+        t["overrides"] = [*(t.get("overrides") or []), *train]
     cfg.setdefault("workdir", "runs/eqm7")
     cfg.setdefault("results_dir", str(HERE))
     cfg.setdefault("data", "datasets/mini-eqm7")

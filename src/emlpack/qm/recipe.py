@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from emlpack.overrides import apply_overrides, load_yaml
 from emlpack.qm.sampling import (
     FIELD_DISTRIBUTIONS,
     Molecule,
@@ -73,21 +74,13 @@ def load_recipe(path: str | Path | None = None, overrides: list[str] | None = No
     if path is not None:
         path = Path(path)
         try:
-            user = yaml.safe_load(path.read_text()) or {}
+            user = load_yaml(path.read_text()) or {}
         except (OSError, yaml.YAMLError) as exc:
             raise SamplingError(f"{path}: cannot read recipe: {exc}") from None
         if not isinstance(user, dict):
             raise SamplingError(f"{path}: a recipe must be a YAML mapping")
         _merge(recipe, user)
-    for item in overrides or []:
-        if "=" not in item:
-            raise SamplingError(f"override {item!r}: expected key=value")
-        key, value = item.split("=", 1)
-        target = recipe
-        parts = key.strip().split(".")
-        for part in parts[:-1]:
-            target = target.setdefault(part, {})
-        target[parts[-1]] = yaml.safe_load(value)
+    apply_overrides(recipe, overrides or [])
     if samples_per_molecule is not None:
         recipe["samples"] = rescale_counts(recipe["samples"], samples_per_molecule)
     validate_recipe(recipe)

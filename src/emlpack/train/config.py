@@ -17,6 +17,7 @@ from emlpack._files import write_text_atomic
 from emlpack.data.augment import AugmentationConfig
 from emlpack.errors import EmlpackError
 from emlpack.nn.potential import ModelConfig
+from emlpack.overrides import load_yaml, nested, parse_override
 from emlpack.train.loss import LossWeights
 
 DEFAULTS: dict = {
@@ -67,18 +68,6 @@ class ConfigError(EmlpackError, ValueError):
     """An invalid configuration file or override."""
 
 
-def parse_override(text: str) -> tuple[list[str], object]:
-    """``(key path, value)`` of a ``key=value`` override; the value parsed as YAML (empty: None)."""
-    if "=" not in text:
-        raise ConfigError(f"override {text!r}: expected key=value (e.g. training.max_epochs=5)")
-    key, value = text.split("=", 1)
-    try:
-        parsed = yaml.safe_load(value) if value != "" else None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"override {text!r}: value is not valid YAML: {exc}") from None
-    return key.strip().split("."), parsed
-
-
 def merge(base: dict, update: dict, where: str = "") -> dict:
     """``base`` updated recursively with ``update``; unknown keys raise :class:`ConfigError`."""
     out = copy.deepcopy(base)
@@ -102,18 +91,14 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
         if not path.is_file():
             raise ConfigError(f"{path}: no such config file")
         try:
-            loaded = yaml.safe_load(path.read_text()) or {}
+            loaded = load_yaml(path.read_text()) or {}
         except yaml.YAMLError as exc:
             raise ConfigError(f"{path}: not valid YAML: {exc}") from None
         if not isinstance(loaded, dict):
             raise ConfigError(f"{path}: the top level must be a mapping")
         cfg = merge(cfg, loaded)
     for text in overrides or []:
-        keys, value = parse_override(text)
-        update: dict = value  # type: ignore[assignment]
-        for k in reversed(keys):
-            update = {k: update}
-        cfg = merge(cfg, update)
+        cfg = merge(cfg, nested(*parse_override(text)))
     validate(cfg)
     return cfg
 

@@ -1,0 +1,58 @@
+"""``key=value`` overrides (emlpack.overrides): YAML values, nested paths, clear errors, and the
+same parser behind the training configuration and the labeling recipes."""
+
+import pytest
+
+from emlpack.errors import InputError
+from emlpack.overrides import OverrideError, apply_overrides, nested, parse_override
+
+
+def test_values_are_yaml_and_keys_dotted_paths():
+    assert parse_override("training.lr=1e-3") == (["training", "lr"], 1e-3)  # YAML 1.1: a string
+    assert parse_override("x=-2.5E+2") == (["x"], -250.0)
+    assert parse_override("name=1e3x") == (["name"], "1e3x")
+    assert parse_override("seeds=[0, 2]") == (["seeds"], [0, 2])
+    assert parse_override("prepare.optimize=false") == (["prepare", "optimize"], False)
+    assert parse_override("dir=") == (["dir"], None)
+    assert parse_override("notes=a=b") == (["notes"], "a=b")  # only the first = splits
+    assert nested(["a", "b"], 3) == {"a": {"b": 3}}
+
+
+def test_apply_sets_in_place_and_adds_missing_mappings():
+    cfg = {"training": {"lr": 1.0, "steps": 5}, "seeds": [0]}
+    out = apply_overrides(cfg, ["training.lr=0.5", "md.time_fs=10", "seeds=[1, 2]"])
+    assert out is cfg
+    assert cfg == {"training": {"lr": 0.5, "steps": 5}, "seeds": [1, 2], "md": {"time_fs": 10}}
+
+
+@pytest.mark.parametrize("text, match", [
+    ("training.lr", "expected key=value"),
+    ("training..lr=1", "empty part"),
+    ("seeds=[0, 1", "not valid YAML"),
+    ("seeds.first=1", "'seeds' is not a mapping"),
+])
+def test_bad_overrides_are_one_line_input_errors(text, match):
+    with pytest.raises(OverrideError, match=match) as info:
+        apply_overrides({"seeds": [0]}, [text])
+    assert isinstance(info.value, InputError) and "\n" not in str(info.value)
+
+
+def test_training_config_refuses_unknown_keys_recipes_accept_new_ones():
+    from emlpack.qm.recipe import load_recipe
+    from emlpack.train.config import ConfigError, load_config
+
+    assert load_config(None, ["training.max_epochs=7"])["training"]["max_epochs"] == 7
+    with pytest.raises(ConfigError, match="unknown config key 'training.max_epoch'"):
+        load_config(None, ["training.max_epoch=7"])
+    with pytest.raises(OverrideError, match="expected key=value"):
+        load_config(None, ["training.max_epochs"])
+    recipe = load_recipe(None, ["level=tiny", "prepare.optimize=false"])
+    assert recipe["level"] == "tiny" and recipe["prepare"]["optimize"] is False
+
+
+def test_a_config_file_reads_exponent_floats_as_floats(tmp_path):
+    from emlpack.train.config import load_config
+
+    path = tmp_path / "train.yaml"
+    path.write_text("training:\n  lr: 3e-4\n")
+    assert load_config(path)["training"]["lr"] == 3e-4
