@@ -56,3 +56,21 @@ def test_a_config_file_reads_exponent_floats_as_floats(tmp_path):
     path = tmp_path / "train.yaml"
     path.write_text("training:\n  lr: 3e-4\n")
     assert load_config(path)["training"]["lr"] == 3e-4
+
+
+@pytest.mark.parametrize("override, match", [
+    ("training.lr=fast", "training.lr must be a number >= 0, got 'fast'"),
+    ("training.lr=-1.0e-3", "training.lr must be a number >= 0"),
+    ("training.decay_epochs=0", "training.decay_epochs must be a positive number"),
+    ("training.max_time_minutes=ten", "training.max_time_minutes must be a positive number"),
+    ("training.decay_factor=2", r"training.decay_factor must be in \(0, 1\]"),
+    ("training.patience=0", "training.patience must be a positive integer or null"),
+    ("loss.forces=true", "loss.forces must be a number >= 0, got True"),
+])
+def test_the_training_config_refuses_bad_numbers_before_training(override, match):
+    from emlpack.train.config import ConfigError, load_config
+
+    with pytest.raises(ConfigError, match=match):
+        load_config(None, [override])
+    assert load_config(None, ["training.max_time_minutes=null", "training.patience=null",
+                              "training.lr=0.0"])["training"]["lr"] == 0.0

@@ -105,8 +105,9 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
 
 def validate(cfg: dict) -> None:
     """Refuse (:class:`ConfigError`) an unknown split or reference, a dtype other than float32 or
-    float64, a batch size or epoch limit that is not a positive integer, and a bad model
-    section."""
+    float64, a batch size, epoch limit or patience that is not a positive integer, a negative
+    learning rate, an Adam epsilon, decay period or time limit that is not a positive number, a
+    decay factor outside (0, 1], a negative loss weight, and a bad model section."""
     d, t = cfg["data"], cfg["training"]
     if d["split"] not in ("auto", "molecule", "configuration", "card"):
         raise ConfigError(f"data.split must be auto, molecule, configuration or card, got"
@@ -119,10 +120,28 @@ def validate(cfg: dict) -> None:
     for key in ("batch_size", "max_epochs"):
         if not isinstance(t[key], int) or t[key] < 1:
             raise ConfigError(f"training.{key} must be a positive integer, got {t[key]!r}")
+    if not (_number(t["lr"]) and t["lr"] >= 0):
+        raise ConfigError(f"training.lr must be a number >= 0, got {t['lr']!r}")
+    for key in ("adam_eps", "decay_epochs", "max_time_minutes"):
+        if not (_number(t[key]) and t[key] > 0) and not (key == "max_time_minutes"
+                                                          and t[key] is None):
+            raise ConfigError(f"training.{key} must be a positive number, got {t[key]!r}")
+    if not (_number(t["decay_factor"]) and 0 < t["decay_factor"] <= 1):
+        raise ConfigError(f"training.decay_factor must be in (0, 1], got {t['decay_factor']!r}")
+    if t["patience"] is not None and (not isinstance(t["patience"], int) or t["patience"] < 1):
+        raise ConfigError(f"training.patience must be a positive integer or null, got"
+                          f" {t['patience']!r}")
+    for key, value in cfg["loss"].items():
+        if not (_number(value) and value >= 0):
+            raise ConfigError(f"loss.{key} must be a number >= 0, got {value!r}")
     try:
         ModelConfig.from_dict(cfg["model"])
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"model: {exc}") from None
+
+
+def _number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def dump_config(cfg: dict, path: str | Path) -> None:
