@@ -110,7 +110,7 @@ def test_loss_terms_follow_the_cost_function(hydrides, frames):
     core = np.concatenate([(f[:len(f)][batch.core_mask] - batch.forces[batch.core_mask]).numpy()])
     pair = (f[batch.pair_mask] - batch.forces[batch.pair_mask]).numpy()
     expected = 0.1 * e.mean() + 2.0 * (core**2).mean() + 3.0 * (pair**2).mean()
-    assert float(combine(terms, w)) == pytest.approx(expected, rel=1e-10)
+    assert float(combine(terms, w).detach()) == pytest.approx(expected, rel=1e-10)
     m = Metrics()
     m.update(pred, batch)
     assert m.loss(w) == pytest.approx(expected, rel=1e-10)
