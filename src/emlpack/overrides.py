@@ -43,7 +43,8 @@ class OverrideError(InputError):
 def parse_override(text: str) -> tuple[list[str], Any]:
     """``(key path, value)`` of one ``key=value`` override; the value parsed as YAML."""
     if "=" not in text:
-        raise OverrideError(f"override {text!r}: expected key=value, the key a dotted path (e.g. section.key=1)")
+        raise OverrideError(f"override {text!r}: expected key=value, the key a dotted path"
+                            f" (e.g. section.key=1)")
     key, value = text.split("=", 1)
     keys = key.strip().split(".")
     if not all(keys):
