@@ -123,8 +123,9 @@ def validate(cfg: dict) -> None:
     if not (_number(t["lr"]) and t["lr"] >= 0):
         raise ConfigError(f"training.lr must be a number >= 0, got {t['lr']!r}")
     for key in ("adam_eps", "decay_epochs", "max_time_minutes"):
-        if not (_number(t[key]) and t[key] > 0) and not (key == "max_time_minutes"
-                                                          and t[key] is None):
+        if key == "max_time_minutes" and t[key] is None:  # no time limit
+            continue
+        if not (_number(t[key]) and t[key] > 0):
             raise ConfigError(f"training.{key} must be a positive number, got {t[key]!r}")
     if not (_number(t["decay_factor"]) and 0 < t["decay_factor"] <= 1):
         raise ConfigError(f"training.decay_factor must be in (0, 1], got {t['decay_factor']!r}")
