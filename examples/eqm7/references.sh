@@ -2,7 +2,8 @@
 # DFT references of the study's test molecules in the background, committed as they finish.
 #
 #   bash examples/eqm7/references.sh [NAME ...]      (from the project root; default: every test
-#                                                     molecule of the card, in `dft_plan`'s order)
+#                                                     molecule of the card and the second test
+#                                                     set's static ones, in `dft_plan`'s order)
 #
 # Runs `run_study.py dft` (resumable: BFGS step by step, ground state, each field, each Hessian
 # displacement) and every COMMIT_MINUTES (default 20) commits the finished reference files only:

@@ -176,6 +176,19 @@ class Study:
         limit = self.cfg.get("max_molecules")
         return rows[: int(limit)] if limit else rows
 
+    def second_set_molecules(self) -> list[dict]:
+        """The second test set's molecules (``evaluate.second_test_set_molecules``: name ->
+        SMILES), for their static DFT references; optionally limited by ``molecules``."""
+        listed = self.cfg.get("evaluate", {}).get("second_test_set_molecules") or {}
+        names = self.cfg.get("molecules")
+        return [{"name": name, "smiles": smiles, "split": "pbe0_subset"}
+                for name, smiles in listed.items() if not names or name in set(names)]
+
+    def reference_molecules(self, set_name: str = "test") -> list[dict]:
+        """The molecules of ``set_name`` (``test``: the card's; ``pbe0_subset``: the second
+        test set's) whose DFT references the model stages compare with."""
+        return self.test_molecules() if set_name == "test" else self.second_set_molecules()
+
     # ------------------------------------------------------------------ models
     def groups(self) -> dict[str, bool]:
         """The model groups (name: augmented), restricted to ``cfg["groups"]`` when given."""
@@ -657,19 +670,23 @@ def dft_vibrations(study: Study, static: dict, labeler) -> dict:
     }
 
 
-def dft_plan(rows: list[dict], figure: list[str]) -> list[tuple[dict, str]]:
+def dft_plan(rows: list[dict], figure: list[str],
+             static_only: list[dict] = ()) -> list[tuple[dict, str]]:
     """(molecule, part) in the order the dft stage computes them: the IR figure's molecules
-    completely, then every other molecule's ``static`` reference, then their ``ir`` ones."""
+    completely, then every other molecule's ``static`` reference, then those of
+    ``static_only`` (the second test set's: polarizabilities, no Hessian), then the ``ir``
+    ones (hours each)."""
     first = [r for r in rows if r["name"] in figure]
     rest = [r for r in rows if r["name"] not in figure]
     return ([(r, part) for r in first for part in ("static", "ir")]
-            + [(r, "static") for r in rest] + [(r, "ir") for r in rest])
+            + [(r, "static") for r in [*rest, *static_only]] + [(r, "ir") for r in rest])
 
 
 def stage_dft(study: Study) -> dict:
-    """The DFT references in the order that gives results soonest: the IR figure's molecules
-    completely (``NAME.json`` then ``NAME.ir.json``), then every other molecule's static
-    reference (polarizabilities), then their Hessians (hours each)."""
+    """The DFT references in the order that gives results soonest (``dft_plan``): the IR
+    figure's molecules completely (``NAME.json`` then ``NAME.ir.json``), then every other test
+    molecule's static reference (polarizabilities), then the second test set's, then the test
+    molecules' Hessians (hours each)."""
     from emlpack.qm.pyscf_labeler import PySCFLabeler
 
     d = study.cfg.get("dft", {})
@@ -682,7 +699,7 @@ def stage_dft(study: Study) -> dict:
                            keep_heap=bool(d.get("keep_heap", False)))
     figure = study.cfg.get("ir", {}).get("figure_molecules", list(IR_MOLECULES))
     out: dict = {}
-    for row, part in dft_plan(study.test_molecules(), figure):
+    for row, part in dft_plan(study.test_molecules(), figure, study.second_set_molecules()):
         name = row["name"]
         target = study.dft_dir / (f"{name}.json" if part == "static" else f"{name}.ir.json")
         failed = study.dft_dir / f"{name}.failed.json"
@@ -715,11 +732,12 @@ def stage_dft(study: Study) -> dict:
     return out
 
 
-def dft_results(study: Study) -> dict[str, dict]:
-    """The finished DFT references of the test molecules, by name: the static reference
-    (``NAME.json``) with the harmonic one (``NAME.ir.json``) merged in when it is finished."""
+def dft_results(study: Study, set_name: str = "test") -> dict[str, dict]:
+    """The finished DFT references of the molecules of ``set_name`` (Study.reference_molecules),
+    by name: the static reference (``NAME.json``) with the harmonic one (``NAME.ir.json``)
+    merged in when it is finished."""
     out = {}
-    for row in study.test_molecules():
+    for row in study.reference_molecules(set_name):
         r = _read_json(study.dft_dir / f"{row['name']}.json")
         if r is not None:
             r.update(_read_json(study.dft_dir / f"{row['name']}.ir.json") or {})
@@ -740,25 +758,34 @@ def _dft_structure(r: dict):
 
 
 # ---------------------------------------------------------------------- polarizability
-def _at_dft_optima(study: Study, stage: str, row: Callable[[object, object], dict]) -> None:
-    """Stage ``stage`` of every model at the DFT optimum of every reference molecule:
-    ``row(model, structure)`` (the DFT structure with its Boys centres) gives one molecule's
-    JSON row; WORKDIR/STAGE/NAME.json is skipped when it holds every reference molecule."""
-    refs = dft_results(study)
+def _stage_file(study: Study, stage: str, name: str, set_name: str = "test") -> Path:
+    """WORKDIR/STAGE/MODEL.json (the card's test molecules) or WORKDIR/STAGE/SET/MODEL.json."""
+    folder = study.workdir / stage
+    return (folder if set_name == "test" else folder / set_name) / f"{name}.json"
+
+
+def _at_dft_optima(study: Study, stage: str, row: Callable[[object, object], dict],
+                   set_name: str = "test") -> None:
+    """Stage ``stage`` of every model at the DFT optimum of every reference molecule of
+    ``set_name``: ``row(model, structure)`` (the DFT structure with its Boys centres) gives one
+    molecule's JSON row; the model's file (``_stage_file``) is skipped when it holds every
+    reference molecule."""
+    refs = dft_results(study, set_name)
     if not refs:
-        study.log(f"{stage}: no DFT reference yet (run the dft stage), skipped")
+        study.log(f"{stage}: no DFT reference of the {set_name} molecules yet (run the dft"
+                  " stage), skipped")
         return
     for group, name, path in study.require_models():
-        target = study.workdir / stage / f"{name}.json"
+        target = _stage_file(study, stage, name, set_name)
         if target.exists() and set(_read_json(target)["molecules"]) >= set(refs):
-            study.log(f"{stage}: {name} exists, skipped")
+            study.log(f"{stage}: {set_name}/{name} exists, skipped")
             continue
         model, _, _ = _load(path)
         rows = {mol: row(model, _dft_structure(r)) for mol, r in refs.items()}
         _write_json(target, {"group": group, "name": name, "model": str(path),
-                             "molecules": rows})
+                             "set": set_name, "molecules": rows})
         study.work[stage] += 1
-        study.log(f"{stage}: {name}: {len(rows)} molecules")
+        study.log(f"{stage}: {set_name}/{name}: {len(rows)} molecules")
 
 
 def stage_polarizability(study: Study) -> None:
@@ -779,14 +806,17 @@ def stage_polarizability(study: Study) -> None:
                 out["failure"] = f"response failed: {exc}"
         return out
 
-    _at_dft_optima(study, "polarizability", row)
+    for set_name in ("test", "pbe0_subset"):
+        _at_dft_optima(study, "polarizability", row, set_name)
 
 
-def polarizability_summary(study: Study) -> dict | None:
-    refs = dft_results(study)
+def polarizability_summary(study: Study, set_name: str = "test") -> dict | None:
+    """Polarizability errors of every model (and group ensemble) at the DFT optima of the
+    molecules of ``set_name`` (the polarizability stage's files), None before any."""
+    refs = dft_results(study, set_name)
     per_group: dict[str, dict] = {}
     for group, name, _ in study.models():
-        r = _read_json(study.workdir / "polarizability" / f"{name}.json")
+        r = _read_json(_stage_file(study, "polarizability", name, set_name))
         if r is None:
             continue
         err, fails = [], 0
@@ -1218,6 +1248,7 @@ def stage_table(study: Study, out_dir: Path | None = None) -> dict:
         "dft_level": study.cfg.get("dft", {}).get("level", "paper"),
         "evaluation": {s: eval_summary(study, s) for s in ("test", "pbe0_subset")},
         "polarizability": polarizability_summary(study),
+        "polarizability_pbe0_subset": polarizability_summary(study, "pbe0_subset"),
         "ir": ir_summary(study),
         "md": md_summary(study),
         "paper": PAPER,
@@ -1340,15 +1371,15 @@ def markdown(result: dict, notes: str = "") -> str:
             continue
         n = next(iter(ev["groups"].values()))["n_structures"]
         lines += _static_md(ev, f"{title}, {n} configurations")
-        lines += _dynamic_md(ev, result["polarizability"] if set_name == "test" else None,
-                             f"{title}, {n} configurations")
-    pol = result["polarizability"]
-    if pol:
-        lines += [f"Polarizability: {pol['n_molecules']} test molecules with a DFT reference;"
-                  " ensemble (mean tensor of a group) MAE / median: "
-                  + ", ".join(f"{GROUP_LABEL[g]} {_val(v['ensemble_mae'], 3)} /"
-                              f" {_val(v['ensemble_median'], 3)} bohr³"
-                              for g, v in pol["groups"].items()) + ".", ""]
+        pol = result.get("polarizability" if set_name == "test" else "polarizability_pbe0_subset")
+        lines += _dynamic_md(ev, pol, f"{title}, {n} configurations")
+        if pol:
+            lines += [f"Polarizability: {pol['n_molecules']} molecules with a DFT reference"
+                      " (our labeler, the labels' level, at its optimum);"
+                      " ensemble (mean tensor of a group) MAE / median: "
+                      + ", ".join(f"{GROUP_LABEL[g]} {_val(v['ensemble_mae'], 3)} /"
+                                  f" {_val(v['ensemble_median'], 3)} bohr³"
+                                  for g, v in pol["groups"].items()) + ".", ""]
     ir = result["ir"]
     lines += ["### Figure 4 and harmonic IR frequencies", ""]
     if ir:

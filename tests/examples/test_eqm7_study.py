@@ -3,7 +3,8 @@
 A tiny sharded data set (the card's layout: molecules.csv + shards/0000.h5 with the hydride
 references) is built in a temporary folder from the shared eQM7 subset (the authors' PBE0 labels
 of six molecules, 8 configurations each); 2 models per group, a very small model, 2 epochs,
-DFT at the ``tiny`` level for the one test molecule (methane), 14 MD steps. Every stage must
+DFT at the ``tiny`` level for the one test molecule (methane) and, statically, for ethyne as the
+second test set's molecule, 14 MD steps. Every stage must
 write its outputs, the numbers must be finite and consistent, and re-running must redo nothing.
 """
 
@@ -33,6 +34,8 @@ def study_run(tmp_path_factory):
         "train.training.batch_size=8", "train.training.lr=0.005",
         "train.training.max_time_minutes=null", "train.training.eval_batch_size=64",
         "evaluate.max_structures=4", "evaluate.max_structures_second=3",
+        # one of the second set's molecules gets a static DFT reference (its polarizability)
+        "evaluate.second_test_set_molecules={qm7-0003: '[H]C#C[H]'}",
         "dft.level=tiny", "dft.boys_starts=1", "dft.fmax=0.05", "dft.max_steps=30",
         "ir.max_iterations=30", "ir.fmax=0.001",
         "md.time_fs=7.0", "md.checkpoint_every=7", "md.log_every=7",
@@ -48,7 +51,7 @@ def test_every_stage_writes_its_outputs(study_run):
     mod, cfg, study, root, _ = study_run
     work = root / "work"
     assert study.work == {"train": 4, "evaluate": 8 if "pbe0_subset" in mod.test_sets(study)
-                          else 4, "dft": 2, "polarizability": 4, "ir": 4, "md": 4, "table": 1,
+                          else 4, "dft": 3, "polarizability": 8, "ir": 4, "md": 4, "table": 1,
                           "export": 1}
     for group in ("aug", "noaug"):
         for seed in (0, 1):
@@ -61,6 +64,9 @@ def test_every_stage_writes_its_outputs(study_run):
             name = f"{group}-s{seed}"
             assert (work / "eval" / "test" / f"{name}.json").exists()
             assert (work / "polarizability" / f"{name}.json").exists()
+            second = json.loads((work / "polarizability" / "pbe0_subset" / f"{name}.json")
+                                .read_text())
+            assert second["set"] == "pbe0_subset" and list(second["molecules"]) == ["qm7-0003"]
             assert (work / "ir" / f"{name}.json").exists()
             assert (work / "md" / name / "methane" / "analysis.json").exists()
             assert (work / "md" / name / "methane" / "trajectory.xyz").exists()
@@ -69,6 +75,10 @@ def test_every_stage_writes_its_outputs(study_run):
     assert dft["level"] == "pbe0/sto-3g" and "frequencies_cm-1" not in dft
     dft.update(json.loads((refs / "methane.ir.json").read_text()))  # harmonic: Hessian, IR
     assert mod.dft_results(study)["methane"] == dft
+    ethyne = json.loads((refs / "qm7-0003.json").read_text())  # the second set: static only
+    assert ethyne["numbers"] == [6, 6, 1, 1] and not (refs / "qm7-0003.ir.json").exists()
+    assert list(mod.dft_results(study, "pbe0_subset")) == ["qm7-0003"]
+    assert list(mod.dft_results(study)) == ["methane"]  # the sets do not mix
     # no campaign preparation in this data set: the start is prepared here (GFN2-xTB)
     assert dft["start_geometry"] == "prepared for the reference (gfn2-xtb)"
     assert (refs / "methane" / "start.npz").exists()
@@ -85,6 +95,7 @@ def test_every_stage_writes_its_outputs(study_run):
     md = (root / "results" / "results.md").read_text()
     assert "Table 2" in md and "Table 3" in md and "Targets of issue 15" in md
     assert "4.45 (± 0.11)" in md  # the paper's numbers beside ours
+    assert md.count("molecules with a DFT reference") == 2  # both sets' polarizabilities
 
 
 def _finite(x, path="results"):
@@ -124,6 +135,19 @@ def test_results_are_finite_and_consistent(study_run):
         rates = [m["error_rate"] for m in g["per_model"].values()]
         assert g["error_rate"]["mean"] == pytest.approx(np.mean(rates))
         maes = [m["mae"] for m in g["per_model"].values() if m["mae"] is not None]
+        if maes:
+            assert g["mae"]["mean"] == pytest.approx(np.mean(maes))
+    second = res["polarizability_pbe0_subset"]
+    assert second["n_molecules"] == 1
+    for g in second["groups"].values():  # the second set's file, against its reference
+        ref = np.array(json.loads((root / "data" / "references" / "pbe0_sto-3g" / "qm7-0003.json")
+                                  .read_text())["polarizability_bohr3"])
+        maes = []
+        for n in g["per_model"]:
+            row = json.loads((root / "work" / "polarizability" / "pbe0_subset" / f"{n}.json")
+                             .read_text())["molecules"]["qm7-0003"]
+            if not row["failure"]:
+                maes.append(np.abs(np.array(row["polarizability_bohr3"]) - ref).mean())
         if maes:
             assert g["mae"]["mean"] == pytest.approx(np.mean(maes))
     md = res["md"]
@@ -169,6 +193,10 @@ def test_dft_plan_finishes_the_figure_molecules_then_polarizabilities_then_hessi
     plan = [(r["name"], part) for r, part in mod.dft_plan(rows, ["fig1", "fig2"])]
     assert plan == [("fig2", "static"), ("fig2", "ir"), ("fig1", "static"), ("fig1", "ir"),
                     ("a", "static"), ("b", "static"), ("a", "ir"), ("b", "ir")]
+    # the second test set's molecules: static references only, before the Hessians
+    plan = [(r["name"], part) for r, part in mod.dft_plan(rows, ["fig1", "fig2"], [{"name": "c"}])]
+    assert plan[4:] == [("a", "static"), ("b", "static"), ("c", "static"), ("a", "ir"),
+                        ("b", "ir")]
 
 
 def test_groups_restrict_training_to_the_chosen_group(study_run):
