@@ -17,7 +17,7 @@ set -euo pipefail
 cd "$(dirname "$0")/../.."
 PY=${PYTHON:-.venv/bin/python}
 REFS=datasets/mini-eqm7/references
-LOG=runs/eqm7-references.log
+LOG=${REFERENCES_LOG:-runs/eqm7-references.log}  # a second run beside the first: its own log
 mkdir -p runs
 names=""
 if [ $# -gt 0 ]; then names="molecules=[$(IFS=,; echo "$*")]"; fi
