@@ -758,7 +758,7 @@ def _dft_structure(r: dict):
 
 
 # ---------------------------------------------------------------------- polarizability
-def _stage_file(study: Study, stage: str, name: str, set_name: str = "test") -> Path:
+def stage_file(study: Study, stage: str, name: str, set_name: str = "test") -> Path:
     """WORKDIR/STAGE/MODEL.json (the card's test molecules) or WORKDIR/STAGE/SET/MODEL.json."""
     folder = study.workdir / stage
     return (folder if set_name == "test" else folder / set_name) / f"{name}.json"
@@ -768,7 +768,7 @@ def _at_dft_optima(study: Study, stage: str, row: Callable[[object, object], dic
                    set_name: str = "test") -> None:
     """Stage ``stage`` of every model at the DFT optimum of every reference molecule of
     ``set_name``: ``row(model, structure)`` (the DFT structure with its Boys centres) gives one
-    molecule's JSON row; the model's file (``_stage_file``) is skipped when it holds every
+    molecule's JSON row; the model's file (``stage_file``) is skipped when it holds every
     reference molecule."""
     refs = dft_results(study, set_name)
     if not refs:
@@ -776,7 +776,7 @@ def _at_dft_optima(study: Study, stage: str, row: Callable[[object, object], dic
                   " stage), skipped")
         return
     for group, name, path in study.require_models():
-        target = _stage_file(study, stage, name, set_name)
+        target = stage_file(study, stage, name, set_name)
         if target.exists() and set(_read_json(target)["molecules"]) >= set(refs):
             study.log(f"{stage}: {set_name}/{name} exists, skipped")
             continue
@@ -816,7 +816,7 @@ def polarizability_summary(study: Study, set_name: str = "test") -> dict | None:
     refs = dft_results(study, set_name)
     per_group: dict[str, dict] = {}
     for group, name, _ in study.models():
-        r = _read_json(_stage_file(study, "polarizability", name, set_name))
+        r = _read_json(stage_file(study, "polarizability", name, set_name))
         if r is None:
             continue
         err, fails = [], 0
