@@ -21,6 +21,12 @@
 # Phase 3 starts when that has ended. The references still to compute are split between two
 # processes, one per core, balanced by their force calls still to do and the size of each call
 # (reference_split.py); the 10x non-augmented model (stopped in phase 2) goes on at nice 10.
+# Phase 4 starts when every harmonic reference is finished: run_study.py ir table (Figure 4,
+# the frequency MAE; results in runs/eqm7/results). A session then reviews the results and runs
+# `table export status=final` itself.
+# The outputs of phases 2b and 4 (per-model JSON, each MD run's analysis.json) are committed
+# every 20 minutes to examples/eqm7/snapshots/final-outputs and restored from there before
+# those phases start (study_outputs.py), so that on a fresh machine they go on where they were.
 # A watcher moves from one phase to the next as the jobs end, without waiting for a session.
 #
 # Each job runs on its own copy of src/ (/tmp/emlp-JOB), so editing the code does not change a
@@ -37,6 +43,7 @@ fi
 DATA=datasets/mini-eqm7
 PIDS=runs/long_jobs
 FINAL_SNAPSHOTS=examples/eqm7/snapshots/final
+OUTPUTS=examples/eqm7/snapshots/final-outputs  # the study stages' small outputs (study_outputs.py)
 WORK=runs/eqm7  # config.yaml's workdir: the final models and their evaluations
 LC=runs/eqm7-lc
 mkdir -p "$PIDS"
@@ -164,13 +171,34 @@ final_trained() {  # every final model has finished (run_study.py train writes d
   done
 }
 
-start_study_eval() {  # phase 2b: the model stages that need no Hessian, beside the references
-  running study-eval && return 0
-  code_copy study-eval
-  PYTHONPATH=/tmp/emlp-study-eval/src OMP_NUM_THREADS=1 nohup "$PY" examples/eqm7/run_study.py \
-    evaluate polarizability md table results_dir=$WORK/results >> runs/study-eval.log 2>&1 &
-  echo $! > "$PIDS/study-eval.pid"
-  echo "final models' evaluation (no IR): PID $!, log runs/study-eval.log, results in $WORK/results"
+start_study() {  # start_study JOB STAGE ...: run_study.py stages on the final models (results in
+  # $WORK/results); their outputs restored from $OUTPUTS first and committed there every 20
+  # minutes and at the end (study_outputs.py). The PID is the watcher's: killing it stops the
+  # stages and saves what they finished.
+  local job=$1
+  shift
+  running "$job" && return 0
+  code_copy "$job"
+  PYTHONPATH=/tmp/emlp-$job/src "$PY" examples/eqm7/study_outputs.py restore "$OUTPUTS" "$WORK"
+  (
+    PYTHONPATH=/tmp/emlp-$job/src OMP_NUM_THREADS=1 "$PY" examples/eqm7/run_study.py "$@" \
+      results_dir=$WORK/results &
+    stage=$!
+    save() {
+      PYTHONPATH=/tmp/emlp-$job/src "$PY" examples/eqm7/study_outputs.py save "$WORK" "$OUTPUTS" \
+        --commit || echo "saving the outputs failed (retrying later)"
+    }
+    trap 'kill "$stage" 2>/dev/null; wait "$stage" 2>/dev/null || true; save; exit 0' TERM
+    while kill -0 "$stage" 2>/dev/null; do
+      for _ in $(seq 120); do
+        kill -0 "$stage" 2>/dev/null || break
+        sleep 10
+      done
+      save
+    done
+  ) >> "runs/$job.log" 2>&1 &
+  echo $! > "$PIDS/$job.pid"
+  echo "$job ($*): PID $!, log runs/$job.log, results in $WORK/results"
 }
 
 stop_job() {
@@ -190,10 +218,13 @@ watch() {  # phase 1 -> 2 -> 3 as the jobs end
   while running final-0 || running final-1; do sleep 60; done
   renice_job references 0
   final_trained || return 0  # a training stopped short: a session looks
-  start_study_eval
+  start_study study-eval evaluate polarizability md table  # phase 2b: no Hessian needed
   while running study-eval; do sleep 60; done
   split_references
   start_noaug_10x  # the rest of its steps at nice 10, from what the references leave
+  while running references-a || running references-b; do sleep 60; done
+  [ -z "$(remaining_references)" ] || return 0  # a reference failed or stopped: a session looks
+  start_study study-ir ir table  # phase 4
 }
 
 start_watcher() {
@@ -218,12 +249,12 @@ case "${1:-start}" in
     watch
     ;;
   stop)
-    for job in watcher campaign references references-a references-b noaug-10x final-0 final-1 study-eval; do
+    for job in watcher campaign references references-a references-b noaug-10x final-0 final-1 study-eval study-ir; do
       stop_job "$job"
     done
     ;;
   status)
-    for job in campaign references references-a references-b noaug-10x final-0 final-1 study-eval watcher; do
+    for job in campaign references references-a references-b noaug-10x final-0 final-1 study-eval study-ir watcher; do
       if running "$job"; then echo "$job: running (PID $(cat "$PIDS/$job.pid"))"; else echo "$job: -"; fi
     done
     PYTHONPATH=src "$PY" -c "

@@ -1079,15 +1079,18 @@ def stage_md(study: Study) -> None:
         plot_conserved(runs, figure, labels=labels, groups=groups,
                        title=title)
         # panels (b) and (c): one run of each class present (stable, transition, unstable)
+        # among the runs whose trajectory is here (study_outputs.py restores analyses only)
         from emlpack.dynamics.analysis import plot_conserved_series
 
         examples = {}
         for r in summary["analyses"]:
-            examples.setdefault(r["classification"], r)
+            if (study.workdir / "md" / r["model"] / r["molecule"] / "trajectory.xyz").exists():
+                examples.setdefault(r["classification"], r)
         paths = [study.workdir / "md" / r["model"] / r["molecule"] for r in examples.values()]
-        plot_conserved_series(paths, study.workdir / "figure3_series.png",
-                              labels=[f"{r['model']}/{r['molecule']}"
-                                      for r in examples.values()], discard_steps=discard)
+        if paths:
+            plot_conserved_series(paths, study.workdir / "figure3_series.png",
+                                  labels=[f"{r['model']}/{r['molecule']}"
+                                          for r in examples.values()], discard_steps=discard)
 
 
 def md_summary(study: Study) -> dict | None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -270,6 +271,42 @@ def test_rerun_redoes_nothing(study_run):
     assert sum(again.work.values()) == 0, again.work
     assert {p: p.stat().st_mtime_ns for p in watched} == before
     assert any("skipped" in line for line in lines)
+
+
+def test_outputs_kept_in_the_repository_continue_the_study_on_a_fresh_machine(study_run):
+    """study_outputs.py: the stages' finished outputs saved to an archive (a file being written
+    is not), restored into a fresh work directory that has only the models (what the committed
+    training snapshots give): evaluate, polarizability, ir and md redo nothing, and the table
+    is the same."""
+    import shutil
+
+    from tests.examples.eqm7_data import example_module
+
+    outputs = example_module("study_outputs")
+    mod, cfg, _, root, _ = study_run
+    work, archive, fresh = root / "work", root / "archive", root / "fresh"
+    half = work / "ir" / "half-written.json"
+    half.write_text('{"molecules": {')  # a file being written: never archived
+    try:
+        saved = outputs.save(work, archive)
+    finally:
+        half.unlink()
+    rel = sorted(p.relative_to(archive) for p in saved)
+    assert len(rel) == 4 * 2 + 4 * 2 + 4 + 4 and Path("ir/half-written.json") not in rel
+    assert {p.parts[0] for p in rel} == {"eval", "polarizability", "ir", "md"}
+    assert all(p.name == "analysis.json" for p in rel if p.parts[0] == "md")
+    assert outputs.save(work, archive) == []  # nothing new
+    shutil.copytree(work / "models", fresh / "models")
+    assert len(outputs.restore(archive, fresh)) == len(rel)
+    assert outputs.restore(archive, fresh) == []
+    again = mod.run(["evaluate", "polarizability", "ir", "md", "table"],
+                    dict(cfg, workdir=str(fresh), results_dir=str(root / "fresh-results")),
+                    log=lambda m: None)
+    assert {k: v for k, v in again.work.items() if v} == {"table": 1}
+    first = json.loads((root / "results" / "results.json").read_text())
+    second = json.loads((root / "fresh-results" / "results.json").read_text())
+    for key in ("evaluation", "polarizability", "polarizability_pbe0_subset", "ir", "md"):
+        assert json.dumps(second[key]).replace(str(fresh), str(work)) == json.dumps(first[key])
 
 
 @pytest.mark.slow
