@@ -10,14 +10,16 @@ temporary file and renamed, so a killed run leaves no half-written result)::
                     molecules of the card, and on the authors' six molecules
                     (../shared/data/eqm7_pbe0_subset.xyz) when that file exists
                     -> WORKDIR/eval/SET/MODEL.json
-    dft             DFT reference of every test molecule at the configured level: optimised
+    dft             DFT reference of every test molecule at the configured level (of the
+                    second test set's molecules the static part only): optimised
                     geometry, Boys centres, dipole, polarizability (finite fields), harmonic
                     frequencies and IR intensities (analytic Hessian, Born charges from the
                     field-perturbed forces) -> DATA/references/LEVEL/NAME.json (sub-steps
                     cached in DATA/references/LEVEL/NAME/, so a killed molecule resumes where
                     it stopped; small immutable files to commit with the data set)
     polarizability  every model at the DFT geometries (pairs relaxed from the DFT centres),
-                    polarizability vs DFT -> WORKDIR/polarizability/MODEL.json
+                    polarizability vs DFT -> WORKDIR/polarizability/MODEL.json (test
+                    molecules) and WORKDIR/polarizability/pbe0_subset/MODEL.json
     ir              every model: optimisation from the DFT geometry, harmonic IR
                     -> WORKDIR/ir/MODEL.json; Figure 4 PNG (aziridine, 3-(methylamino)but-2-enal)
     md              NVT runs (500 fs, 300 K, 0.5 fs) per test molecule x model
