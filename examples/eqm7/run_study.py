@@ -13,8 +13,8 @@ temporary file and renamed, so a killed run leaves no half-written result)::
     dft             DFT reference of every test molecule at the configured level (of the
                     second test set's molecules the static part only): optimised
                     geometry, Boys centres, dipole, polarizability (finite fields), harmonic
-                    frequencies and IR intensities (analytic Hessian, Born charges from the
-                    field-perturbed forces) -> DATA/references/LEVEL/NAME.json (sub-steps
+                    frequencies and IR intensities (Hessian by central differences of the
+                    forces, dft.hessian; Born charges from the field-perturbed forces) -> DATA/references/LEVEL/NAME.json (sub-steps
                     cached in DATA/references/LEVEL/NAME/, so a killed molecule resumes where
                     it stopped; small immutable files to commit with the data set)
     polarizability  every model at the DFT geometries (pairs relaxed from the DFT centres),
