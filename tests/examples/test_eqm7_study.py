@@ -156,6 +156,15 @@ def test_results_are_finite_and_consistent(study_run):
     for g in md["groups"].values():
         assert g["stable"] + g["transition"] + g["unstable"] == g["runs"]
     assert len(res["targets"]) == 5
+    # the setup beside the paper's (why the numbers differ): each model's own run folder
+    for name, setup in res["training_setup"].items():
+        rows = (root / "work" / "models" / name.split("-")[0] / f"seed{name[-1]}" / "log.csv")\
+            .read_text().splitlines()
+        assert setup["n_features"] == 8 and setup["n_interactions"] == 1
+        assert setup["steps"] == int(rows[-1].split(",")[1]) > 0 and setup["hours"] > 0
+    text = (root / "results" / "results.md").read_text()
+    assert "- **Architecture.** F=8, G=8, N=8, T=1" in text
+    assert f"{6 * PER_MOLECULE} configurations of 6 molecules" in text
     assert all(t["met"] in (True, False, None) for t in res["targets"])
 
 
