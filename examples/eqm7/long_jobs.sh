@@ -207,7 +207,7 @@ stop_job() {
   fi
 }
 
-watch() {  # phase 1 -> 2 -> 3 as the jobs end
+watch() {  # phase 1 -> 2 -> 2b -> 3 -> 4 as the jobs end
   while running campaign; do sleep 60; done
   target_reached || return 0  # the campaign stopped short of its target: a session looks
   if running noaug-10x; then
