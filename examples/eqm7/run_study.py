@@ -1544,7 +1544,7 @@ def preliminary_notice(result: dict, name: str, group: str) -> str:
                   f" {1000 * mae['energy']['mean']:.0f} meV/atom (the paper's: 52 meV/Å,"
                   " 5 meV/atom)")
     return (f"{name} is a preliminary ensemble, trained on {d['configurations']} configurations"
-            f" of {d['molecules']} molecules while its data set is being labeled{errors}:"
+            f" of {d['molecules']} molecules, not its complete data set{errors}:"
             f" check important results with DFT (its card: emlpack/pretrained/{name}/card.md)")
 
 
