@@ -43,10 +43,10 @@ def main() -> None:
     study = run_study.run(["polarizability"], cfg)
     for set_name, title in (("test", "test molecules of the card"),
                             ("pbe0_subset", "the second test set (the authors' six molecules)")):
-        report(study, args.workdir, len(paths), set_name, title)
+        report(study, len(paths), set_name, title)
 
 
-def report(study, workdir: Path, n_members: int, set_name: str, title: str) -> None:
+def report(study, n_members: int, set_name: str, title: str) -> None:
     """Table 3's polarizability figures of one set, and each molecule's isotropic values."""
     summary = run_study.polarizability_summary(study, set_name)
     if summary is None:
@@ -71,6 +71,7 @@ def report(study, workdir: Path, n_members: int, set_name: str, title: str) -> N
         print(f"{mol}: DFT {ref_iso:.1f} bohr^3, members "
               + ", ".join("failed" if np.isnan(x) else f"{x:.1f}" for x in iso)
               + f" (mean / DFT {np.nanmean(iso) / ref_iso:.2f})")
+
 
 if __name__ == "__main__":
     main()

@@ -40,35 +40,30 @@ def finished_outputs(workdir: Path) -> list[Path]:
     return out
 
 
-def save(workdir: Path, archive: Path) -> list[Path]:
-    """Copy the new or changed finished outputs into ``archive``; returns their archive paths."""
+def copy_outputs(source: Path, target: Path, replace: bool) -> list[Path]:
+    """Copy the finished outputs of ``source`` into ``target`` where they are missing, and with
+    ``replace`` also where they differ; returns the paths written under ``target``."""
     from emlpack._files import write_bytes_atomic
 
-    saved = []
-    for rel in finished_outputs(workdir):
-        data = (workdir / rel).read_bytes()
-        target = archive / rel
-        if target.exists() and target.read_bytes() == data:
+    written = []
+    for rel in finished_outputs(source):
+        data, dest = (source / rel).read_bytes(), target / rel
+        if dest.exists() and (not replace or dest.read_bytes() == data):
             continue
-        target.parent.mkdir(parents=True, exist_ok=True)
-        write_bytes_atomic(target, data)
-        saved.append(target)
-    return saved
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        write_bytes_atomic(dest, data)
+        written.append(dest)
+    return written
+
+
+def save(workdir: Path, archive: Path) -> list[Path]:
+    """Copy the new or changed finished outputs into ``archive``; returns their archive paths."""
+    return copy_outputs(workdir, archive, replace=True)
 
 
 def restore(archive: Path, workdir: Path) -> list[Path]:
     """Copy the archive's outputs into ``workdir`` where they are missing; returns them."""
-    from emlpack._files import write_bytes_atomic
-
-    restored = []
-    for rel in finished_outputs(archive):
-        target = workdir / rel
-        if target.exists():
-            continue
-        target.parent.mkdir(parents=True, exist_ok=True)
-        write_bytes_atomic(target, (archive / rel).read_bytes())
-        restored.append(target)
-    return restored
+    return copy_outputs(archive, workdir, replace=False)
 
 
 def main(argv: list[str] | None = None) -> int:
