@@ -1521,15 +1521,60 @@ def stage_export(study: Study) -> Path:
         results_md = results_md.resolve().relative_to(ROOT)
     except ValueError:
         pass
-    card = model_card(results, name, group, len(models), results_md)
+    calibration, check = spread_calibration(study, models)
+    card = model_card(results, name, group, len(models), results_md, calibration, check)
     files = export_pretrained(models, folder, card,
                               notice=None if final else preliminary_notice(results, name, group),
-                              data_path=e.get("data_label"), domain=study.train_domain())
+                              data_path=e.get("data_label"), domain=study.train_domain(),
+                              spread_calibration=calibration)
     study.work["export"] += 1
     where = "the package" if final and not e.get("dir") else str(folder)
     study.log(f"export: {len(models)} {GROUP_LABEL[group]} models -> {folder} ({where};"
               f" {sum(f.stat().st_size for f in files) / 1e6:.2f} MB)")
     return folder
+
+
+def spread_calibration(study: Study, models: list[Path]) -> tuple[dict | None, dict | None]:
+    """The exported ensemble's spread thresholds, calibrated on the validation molecules'
+    configurations (``export.spread_quantile`` of their spreads, pairs relaxed as users get
+    them; the shipped float32 weights), and how often they warn on the test molecules'
+    configurations (``check``: the fractions and the medians of spread and error). ``(None,
+    None)`` with a log line when the validation split is too small
+    (``export.spread_min_configurations``): the calculator then keeps its heuristic ones."""
+    import torch
+
+    from emlpack.calculators.calibration import (
+        calibrate_spread,
+        spread_and_error,
+        warned_fraction,
+    )
+    from emlpack.calculators.ensemble import SpreadThresholds, as_ensemble
+
+    e = study.cfg.get("export", {}) or {}
+    ensemble = as_ensemble(models, torch.float32).to(torch.float64)  # the shipped weights
+    data = study.shards()
+    split = data.split_indices()
+    val = [data.structures[i] for i in split["val"]]
+    n = len({s.info.get("molecule_id") for s in val})
+    try:
+        calibration = calibrate_spread(
+            ensemble, val, f"the {n} validation molecule{'s' if n != 1 else ''}",
+            float(e.get("spread_quantile", 0.95)),
+            min_configurations=int(e.get("spread_min_configurations", 20)))
+    except ValueError as exc:
+        study.log(f"export: no spread calibration ({exc}); the calculator keeps its heuristic"
+                  " thresholds")
+        return None, None
+    test = spread_and_error(ensemble, [data.structures[i] for i in split["test"]])
+    check = {"configurations": len(test["energy_spread"]), "failed": len(test["failed"]),
+             "warned": warned_fraction(test, SpreadThresholds.calibrated(calibration,
+                                                                         len(ensemble))),
+             "median": {k: float(np.median(test[k])) for k in test if k != "failed"}}
+    study.log(f"export: spread thresholds {calibration['energy_eV_per_atom']:.4f} eV/atom,"
+              f" {calibration['forces_eV_per_A']:.3f} eV/Å ({calibration['configurations']}"
+              f" validation configurations); they warn on {check['warned']['either']:.0%} of"
+              f" {check['configurations']} test configurations")
+    return calibration, check
 
 
 def preliminary_notice(result: dict, name: str, group: str) -> str:
@@ -1549,9 +1594,11 @@ def preliminary_notice(result: dict, name: str, group: str) -> str:
 
 
 def model_card(result: dict, name: str, group: str, n_models: int,
-               results_md: str | Path = "examples/eqm7/results.md") -> str:
+               results_md: str | Path = "examples/eqm7/results.md",
+               calibration: dict | None = None, check: dict | None = None) -> str:
     """The model card (Markdown) of the exported ensemble, from the study's ``results.json``
-    (``results_md``: where its tables are, quoted in the card)."""
+    (``results_md``: where its tables are, quoted in the card; ``calibration``, ``check``: its
+    spread thresholds and their test, :func:`spread_calibration`)."""
     d = result["data"]
     by = d["by_split"]
     ev = (result.get("evaluation") or {}).get("test") or {}
@@ -1633,6 +1680,7 @@ def model_card(result: dict, name: str, group: str, n_models: int,
         lines.append(f"MD (500 fs NVT at 300 K): {md['runs']} runs, {md['stable']} stable,"
                      f" {md['unstable']} unstable, {md['bonding_changed']} with bonding"
                      " changed.")
+    lines += ["", "## Uncertainty", "", *spread_card(calibration, check)]
     size = (d.get("train_domain") or {}).get("max_heavy_atoms")
     largest = (f" Its training molecules have at most {size} heavy atoms (the data set's"
                " target: up to 7); the calculator warns on a larger molecule." if size else "")
@@ -1654,6 +1702,35 @@ def model_card(result: dict, name: str, group: str, n_models: int,
         " Properties with an Explicit-Electron Machine Learning Potential. J. Chem. Theory"
         " Comput. 2022, 18, 1672-1691. doi:10.1021/acs.jctc.1c00978 — and emlpack.", ""]
     return "\n".join(lines)
+
+
+def spread_card(calibration: dict | None, check: dict | None) -> list[str]:
+    """The model card's lines on the spread warnings: the calibrated thresholds and how they
+    fare on the test molecules, or that the heuristic ones are used."""
+    from emlpack.calculators.ensemble import SpreadThresholds
+
+    if not calibration:
+        h = SpreadThresholds()
+        return [f"The spread warnings use heuristic thresholds ({h.energy} eV/atom for the"
+                f" energy, {h.forces} eV/Å for the largest force component): they are not"
+                " calibrated for this ensemble."]
+    lines = [
+        f"The calculator and every command warn when the spread across the members exceeds"
+        f" {calibration['energy_eV_per_atom']:.4f} eV/atom (energy) or"
+        f" {calibration['forces_eV_per_A']:.3f} eV/Å (largest force component): the"
+        f" {calibration['quantile']:.0%} quantiles of the spreads on the"
+        f" {calibration['configurations']} configurations of {calibration['set']}, with the"
+        f" pairs {calibration['pairs']} (none of these molecules was trained on; stored in"
+        " every member as `spread_calibration`)."]
+    if check:
+        w, m = check["warned"], check["median"]
+        lines[0] += (
+            f" On the {check['configurations']} configurations of the test molecules they warn"
+            f" on {w['energy']:.0%} (energy) and {w['forces']:.0%} (forces); there the median"
+            f" error is {m['energy_error'] / max(m['energy_spread'], 1e-300):.1f}x the median"
+            f" spread for energies and {m['force_error'] / max(m['force_spread'], 1e-300):.1f}x"
+            " for the largest force component, so a quiet spread is no proof of accuracy.")
+    return lines
 
 
 # ---------------------------------------------------------------------- driver

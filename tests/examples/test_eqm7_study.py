@@ -40,6 +40,7 @@ def study_run(tmp_path_factory):
         "dft.level=tiny", "dft.boys_starts=1", "dft.fmax=0.05", "dft.max_steps=30",
         "ir.max_iterations=30", "ir.fmax=0.001",
         "md.time_fs=7.0", "md.checkpoint_every=7", "md.log_every=7",
+        "export.spread_min_configurations=5",  # the validation molecule's 8 configurations
         f"training.snapshots={root / 'snapshots'}",  # not a git repository: nothing committed
     ]
     cfg = mod.load_config(ROOT / "examples" / "eqm7" / "config.yaml", overrides)
@@ -195,6 +196,14 @@ def test_export_ships_the_augmented_ensemble_with_its_card(study_run):
     size = result["data"]["train_domain"]["max_heavy_atoms"]
     assert size >= 1 and ensemble.max_heavy_atoms == size
     assert f"training molecules have at most {size} heavy atoms" in card
+    # the spread warnings: calibrated on the validation molecule, the same in every member
+    cal = ensemble.members[0].spread_calibration
+    n_val = result["data"]["by_split"]["val"]["configurations"]
+    assert cal["configurations"] + cal["failed"] == n_val and cal["members"] == 2
+    assert all(m.spread_calibration == cal for m in ensemble.members)
+    assert ensemble.spread_thresholds.energy == cal["energy_eV_per_atom"]
+    assert f"exceeds {cal['energy_eV_per_atom']:.4f} eV/atom (energy)" in card
+    assert "of the test molecules they warn on" in card
 
 
 def test_dft_plan_finishes_the_figure_molecules_then_polarizabilities_then_hessians():

@@ -35,11 +35,13 @@ commands do); it raises only when every member has failed.
 Warnings (``calc.warnings``, also logged) say when a result should not be trusted: an element
 the models were not trained on, a molecule with more heavy atoms than the largest training
 molecule (:func:`emlpack.bonding.largest_molecule`, recorded in the checkpoints), a spread
-across members above ``energy_spread_warning`` (eV/atom) or ``force_spread_warning`` (eV/Å),
-or a molecule whose bonding changed since the first geometry this calculator saw
-(:func:`emlpack.bonding.bonding_changes`); and a model's own notice from its checkpoint (a
-preliminary pretrained ensemble's measured errors). The notices and the element and size
-warnings are in every result's warnings and logged once per calculator.
+across members above ``energy_spread_warning`` (eV/atom) or ``force_spread_warning`` (eV/Å)
+(by default the ensemble's calibrated thresholds when its members carry them, see
+:mod:`emlpack.calculators.calibration`, else heuristic ones), or a molecule whose bonding
+changed since the first geometry this calculator saw (:func:`emlpack.bonding.bonding_changes`);
+and a model's own notice from its checkpoint (a preliminary pretrained ensemble's measured
+errors). The notices and the element and size warnings are in every result's warnings and
+logged once per calculator.
 """
 
 from __future__ import annotations
@@ -55,7 +57,12 @@ from ase.calculators.calculator import CalculationFailed, Calculator, all_change
 from ase.stress import full_3x3_to_voigt_6_stress
 
 from emlpack.bonding import bonding_changes
-from emlpack.calculators.ensemble import ModelEnsemble, as_ensemble
+from emlpack.calculators.ensemble import (
+    ModelEnsemble,
+    SpreadThresholds,
+    as_ensemble,
+    spread_thresholds,
+)
 from emlpack.geometry import carry_pairs
 from emlpack.io.ase_convert import FIELD_KEY, PAIRS_KEY, atoms_to_structure
 from emlpack.nn.potential import EMLP
@@ -63,10 +70,6 @@ from emlpack.pairs.relax import RelaxOptions, RelaxResult
 from emlpack.pairs.solvers import BatchedSolver, PairSolver
 
 log = logging.getLogger(__name__)
-
-#: default warning thresholds of the ensemble spread (heuristics, see docs/pretrained.md)
-ENERGY_SPREAD_WARNING = 0.02  # eV/atom
-FORCE_SPREAD_WARNING = 0.5  # eV/Å
 
 
 class EMLPCalculator(Calculator):
@@ -82,8 +85,11 @@ class EMLPCalculator(Calculator):
         pair_solver: the relaxation (:class:`~emlpack.pairs.solvers.PairSolver`; default
             ``BatchedSolver(relax_options)``); copied for every further ensemble member.
         dtype: evaluation precision (float64 by default; the caller's models are not changed).
-        energy_spread_warning: warn above this ensemble energy spread (eV/atom).
-        force_spread_warning: warn above this ensemble force spread (eV/Å, largest component).
+        energy_spread_warning: warn above this ensemble energy spread (eV/atom); None: the
+            ensemble's calibrated threshold, else the heuristic
+            :data:`~emlpack.calculators.ensemble.ENERGY_SPREAD_WARNING`.
+        force_spread_warning: warn above this ensemble force spread (eV/Å, largest
+            component); None: as ``energy_spread_warning``.
         check_bonding: warn when a molecule's bonding differs from the first geometry seen.
     """
 
@@ -111,8 +117,8 @@ class EMLPCalculator(Calculator):
         pairs: np.ndarray | None = None,
         relax_options: RelaxOptions | None = None,
         dtype: torch.dtype = torch.float64,
-        energy_spread_warning: float = ENERGY_SPREAD_WARNING,
-        force_spread_warning: float = FORCE_SPREAD_WARNING,
+        energy_spread_warning: float | None = None,
+        force_spread_warning: float | None = None,
         check_bonding: bool = True,
         pair_solver: PairSolver | None = None,
         failed_members: str = "raise",
@@ -137,8 +143,7 @@ class EMLPCalculator(Calculator):
         self.pair_solvers: list[PairSolver] = [solver] + [
             copy.deepcopy(solver) for _ in self.ensemble.members[1:]]
         self.pair_solver = solver
-        self.energy_spread_warning = float(energy_spread_warning)
-        self.force_spread_warning = float(force_spread_warning)
+        self._given_thresholds = (energy_spread_warning, force_spread_warning)
         self.check_bonding = bool(check_bonding)
         self.relax_result: RelaxResult | None = None
         self.relax_results: list[RelaxResult] = []
@@ -330,19 +335,24 @@ class EMLPCalculator(Calculator):
         self._warm = (atoms.numbers.copy(), atoms.positions.copy(),
                       atoms.cell[:].copy() if np.any(atoms.pbc) else None, member_pairs)
 
+    @property
+    def spread_thresholds(self) -> SpreadThresholds:
+        """When the spread across the members in use is large: the thresholds given to the
+        constructor, else the ensemble's calibrated ones (scaled to the members not dropped),
+        else the heuristic ones (:func:`emlpack.calculators.ensemble.spread_thresholds`)."""
+        energy, forces = self._given_thresholds
+        t = spread_thresholds([m for k, m in enumerate(self.ensemble.members)
+                               if k not in self.dropped])
+        if energy is None and forces is None:
+            return t
+        return SpreadThresholds(t.energy if energy is None else float(energy),
+                                t.forces if forces is None else float(forces), "given")
+
     def _spread_warnings(self, n_atoms: int) -> list[str]:
-        if len(self.ensemble) < 2:
+        if len(self.ensemble) - len(self.dropped) < 2:
             return []
-        out = []
-        e_std = self.results["energy_std"] / max(n_atoms, 1)
-        if e_std > self.energy_spread_warning:
-            out.append(f"ensemble energy spread {e_std:.3f} eV/atom exceeds"
-                       f" {self.energy_spread_warning} eV/atom: outside the models' domain?")
-        f_std = float(np.max(self.results["forces_std"], initial=0.0))
-        if f_std > self.force_spread_warning:
-            out.append(f"ensemble force spread {f_std:.3f} eV/Å exceeds"
-                       f" {self.force_spread_warning} eV/Å: outside the models' domain?")
-        return out
+        return self.spread_thresholds.warnings(n_atoms, self.results["energy_std"],
+                                               self.results["forces_std"])
 
     def _bonding_warnings(self, atoms: Atoms) -> list[str]:
         if not self.check_bonding or np.any(atoms.pbc):

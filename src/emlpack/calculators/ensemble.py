@@ -13,7 +13,10 @@ and the DFT-scale energy a user compares with a PySCF number adds the DFT hydrid
 with ``U_hyd`` evaluated at the stored hydride cores and centres, exactly as in training and in
 the evaluation tables. For a fixed composition this is a constant shift: forces, dipoles and
 every response are unchanged. :class:`ModelEnsemble` holds one or more such members; with
-several, properties are averaged and their spread across members is the uncertainty.
+several, properties are averaged and their spread across members is the uncertainty, and
+:class:`SpreadThresholds` say when that spread is large: calibrated on held-out molecules when
+the members carry a calibration (:mod:`emlpack.calculators.calibration`, stored by
+:func:`emlpack.pretrained.export_pretrained`), heuristic otherwise.
 """
 
 from __future__ import annotations
@@ -37,6 +40,10 @@ from emlpack.nn.potential import EMLP, for_evaluation
 
 _T = TypeVar("_T")
 
+#: heuristic thresholds of the ensemble spread, for ensembles without a calibration
+ENERGY_SPREAD_WARNING = 0.02  # eV/atom
+FORCE_SPREAD_WARNING = 0.5  # eV/Å, largest component
+
 
 class EnsembleError(EmlpackError, ValueError):
     """Models that cannot form an ensemble, or a structure outside what they can describe."""
@@ -55,6 +62,8 @@ class ModelMember:
             preliminary pretrained model's measured errors), or None.
         max_heavy_atoms: heavy atoms of the largest molecule in the training set
             (:func:`emlpack.data.dataset.training_domain`), or None when unknown.
+        spread_calibration: the spread thresholds of the ensemble this model was shipped in
+            (:func:`emlpack.calculators.calibration.calibrate_spread`), or None.
     """
 
     model: EMLP
@@ -63,6 +72,7 @@ class ModelMember:
     source: str = "<memory>"
     notice: str | None = None
     max_heavy_atoms: int | None = None
+    spread_calibration: dict | None = None
     _hydride_delta: np.ndarray | None = field(default=None, repr=False)
 
     def hydride_delta(self) -> np.ndarray | None:
@@ -105,7 +115,64 @@ def load_member(path: str | Path, dtype: torch.dtype = torch.float64) -> ModelMe
     size = meta.get("max_heavy_atoms")
     return ModelMember(model, reference, None if elements is None else tuple(map(int, elements)),
                        str(path), meta.get("notice") or None,
-                       None if size is None else int(size))
+                       None if size is None else int(size), meta.get("spread_calibration"))
+
+
+@dataclass(frozen=True)
+class SpreadThresholds:
+    """When the spread across an ensemble's members is large enough to warn.
+
+    Attributes:
+        energy: energy spread (population std over members) per atom, eV/atom.
+        forces: largest spread of a force component, eV/Å.
+        basis: how they were set (the calibration's set and quantile, or "heuristic").
+    """
+
+    energy: float = ENERGY_SPREAD_WARNING
+    forces: float = FORCE_SPREAD_WARNING
+    basis: str = "heuristic"
+
+    @classmethod
+    def calibrated(cls, calibration: dict, n_members: int) -> SpreadThresholds:
+        """The thresholds of a calibration record
+        (:func:`emlpack.calculators.calibration.calibrate_spread`) for ``n_members`` members:
+        with n members of an ensemble calibrated with N (some left out) they scale as the
+        expected population spread, by sqrt(((n-1)/n) / ((N-1)/N))."""
+        n, size = int(n_members), int(calibration["members"])
+        scale = float(np.sqrt(((n - 1) / n) / ((size - 1) / size)))
+        basis = (f"calibrated: exceeded on {1 - calibration['quantile']:.0%} of"
+                 f" {calibration['configurations']} configurations of {calibration['set']}"
+                 + (f", scaled to {n} of {size} members" if n != size else ""))
+        return cls(scale * float(calibration["energy_eV_per_atom"]),
+                   scale * float(calibration["forces_eV_per_A"]), basis)
+
+    def warnings(self, n_atoms: int, energy_std: float,
+                 forces_std: np.ndarray | None = None) -> list[str]:
+        """The warnings for an ensemble result: ``energy_std`` (eV, whole structure),
+        ``forces_std`` (eV/Å, any shape; None: not checked)."""
+        out = []
+        per_atom = float(energy_std) / max(n_atoms, 1)
+        if per_atom > self.energy:
+            out.append(f"ensemble energy spread {per_atom:.3f} eV/atom exceeds"
+                       f" {self.energy:.3g} eV/atom ({self.basis}): outside the models'"
+                       " domain?")
+        if forces_std is not None:
+            largest = float(np.max(forces_std, initial=0.0))
+            if largest > self.forces:
+                out.append(f"ensemble force spread {largest:.3f} eV/Å exceeds"
+                           f" {self.forces:.3g} eV/Å ({self.basis}): outside the models'"
+                           " domain?")
+        return out
+
+
+def spread_thresholds(members: Sequence[ModelMember]) -> SpreadThresholds:
+    """The members' calibrated thresholds when they all carry the same calibration (an
+    ensemble shipped together; :meth:`SpreadThresholds.calibrated`), else the heuristic ones."""
+    calibrations = [m.spread_calibration for m in members]
+    first = calibrations[0]
+    if not first or len(members) < 2 or any(c != first for c in calibrations[1:]):
+        return SpreadThresholds()
+    return SpreadThresholds.calibrated(first, len(members))
 
 
 class ModelEnsemble:
@@ -149,6 +216,11 @@ class ModelEnsemble:
         when no member records it."""
         sizes = [m.max_heavy_atoms for m in self.members if m.max_heavy_atoms is not None]
         return min(sizes) if sizes else None
+
+    @property
+    def spread_thresholds(self) -> SpreadThresholds:
+        """When the members' spread is large (:func:`spread_thresholds`)."""
+        return spread_thresholds(self.members)
 
     def domain_warnings(self, numbers: np.ndarray | Sequence[int], positions: np.ndarray,
                         periodic: bool = False) -> list[str]:

@@ -123,8 +123,7 @@ class Prepared:
     def energies(self) -> dict:
         """Energy record (DFT scale when known) of the members at their structures, with the
         ensemble's mean, ``energy_eV_std`` and a warning when the spread is large."""
-        from emlpack.calculators.ase import ENERGY_SPREAD_WARNING
-        from emlpack.calculators.ensemble import member_spread
+        from emlpack.calculators.ensemble import member_spread, spread_thresholds
 
         records = [energy_record(m, s, m.model.evaluate(s)["energy"])
                    for _, m, s in self.each()]
@@ -135,11 +134,8 @@ class Prepared:
             if isinstance(value, float):
                 out[key] = float(np.mean([r[key] for r in records]))
         out.update(member_spread(records))
-        per_atom = out["energy_eV_std"] / len(self.structure.numbers)
-        if per_atom > ENERGY_SPREAD_WARNING:
-            self.warnings.append(f"ensemble energy spread {per_atom:.3f} eV/atom exceeds"
-                                 f" {ENERGY_SPREAD_WARNING} eV/atom: outside the models'"
-                                 " domain?")
+        self.warnings += spread_thresholds(self.members).warnings(
+            len(self.structure.numbers), out["energy_eV_std"])
         return out
 
     def summary(self) -> str:

@@ -84,7 +84,8 @@ def model_card(name: str, root: Path | None = None) -> str:
 
 def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: str,
                       dtype: torch.dtype | None = None, notice: str | None = None,
-                      data_path: str | None = None, domain: dict | None = None) -> list[Path]:
+                      data_path: str | None = None, domain: dict | None = None,
+                      spread_calibration: dict | None = None) -> list[Path]:
     """Write trained checkpoints as a shippable pretrained model: ``folder/model-K.pt`` with
     weights in ``dtype`` (default float32), only the metadata a user needs (reference,
     elements, model config, data path and split), and ``folder/card.md``. ``notice``: a line
@@ -92,7 +93,9 @@ def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: s
     preliminary, with its measured errors); ``data_path``: how the metadata names the training
     data (default: the checkpoint's own, which may be a local path); ``domain``: the
     training domain (:func:`emlpack.data.dataset.training_domain`) for checkpoints whose
-    metadata lacks it (written before it was recorded). The folder's earlier
+    metadata lacks it (written before it was recorded); ``spread_calibration``: the
+    ensemble's spread thresholds (:func:`emlpack.calculators.calibration.calibrate_spread`
+    of these checkpoints at ``dtype``), stored in every member. The folder's earlier
     members are replaced: a ``model-K.pt`` beyond the new ensemble's size is removed. Returns
     the written files."""
     import torch
@@ -117,6 +120,8 @@ def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: s
         out["source_checkpoint"] = Path(path).name
         if notice:
             out["notice"] = notice
+        if spread_calibration:
+            out["spread_calibration"] = spread_calibration
         if data_path:
             out["data_path"] = data_path
         written.append(save_model(model, folder / f"model-{k}.pt", out))
