@@ -15,6 +15,7 @@ ratio of medians), since a quiet spread is no proof of accuracy.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 
 import numpy as np
@@ -39,19 +40,25 @@ def spread_and_error(ensemble: ModelEnsemble, structures: Sequence[Structure],
 
     out: dict[str, list] = {key: [] for key in SPREAD_KEYS}
     failed = []
-    for k, s in enumerate(structures):
-        atoms = structure_to_atoms(s)
-        atoms.calc = EMLPCalculator(ensemble, relax_pairs=relax_pairs, check_bonding=False)
-        try:
-            energy = atoms.get_potential_energy()
-        except CalculationFailed:
-            failed.append(k)
-            continue
-        n = len(atoms)
-        out["energy_spread"].append(atoms.calc.results["energy_std"] / n)
-        out["energy_error"].append(abs(energy - s.energy) / n)
-        out["force_spread"].append(float(np.max(atoms.calc.results["forces_std"])))
-        out["force_error"].append(float(np.max(np.abs(atoms.get_forces() - s.forces))))
+    calculator_log = logging.getLogger("emlpack.calculators.ase")
+    level = calculator_log.level
+    calculator_log.setLevel(logging.ERROR)  # the calculator's warnings: not for this loop
+    try:
+        for k, s in enumerate(structures):
+            atoms = structure_to_atoms(s)
+            atoms.calc = EMLPCalculator(ensemble, relax_pairs=relax_pairs, check_bonding=False)
+            try:
+                energy = atoms.get_potential_energy()
+            except CalculationFailed:
+                failed.append(k)
+                continue
+            n = len(atoms)
+            out["energy_spread"].append(atoms.calc.results["energy_std"] / n)
+            out["energy_error"].append(abs(energy - s.energy) / n)
+            out["force_spread"].append(float(np.max(atoms.calc.results["forces_std"])))
+            out["force_error"].append(float(np.max(np.abs(atoms.get_forces() - s.forces))))
+    finally:
+        calculator_log.setLevel(level)
     result: dict = {key: np.asarray(value, float) for key, value in out.items()}
     result["failed"] = failed
     return result
