@@ -21,7 +21,9 @@ from collections.abc import Sequence
 import numpy as np
 from ase.calculators.calculator import CalculationFailed
 
+from emlpack.calculators.ase import EMLPCalculator
 from emlpack.calculators.ensemble import ModelEnsemble, SpreadThresholds
+from emlpack.io.ase_convert import structure_to_atoms
 from emlpack.structure import Structure
 
 #: the quantities of :func:`spread_and_error`, per configuration
@@ -35,9 +37,6 @@ def spread_and_error(ensemble: ModelEnsemble, structures: Sequence[Structure],
     arrays; ``failed``: the indices whose pair relaxation failed (left out of the arrays).
     The pairs start from the labeled centres (relaxed from there unless ``relax_pairs`` is
     False); the errors are against each configuration's labels, on the DFT scale."""
-    from emlpack.calculators.ase import EMLPCalculator
-    from emlpack.io.ase_convert import structure_to_atoms
-
     out: dict[str, list] = {key: [] for key in SPREAD_KEYS}
     failed = []
     calculator_log = logging.getLogger("emlpack.calculators.ase")
