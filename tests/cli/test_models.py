@@ -157,3 +157,33 @@ def test_a_member_with_a_broken_structure_is_left_out_of_the_results(ensemble_fo
     assert any(w.startswith("model 2 left out of the results") for w in data["warnings"])
     assert data["polarizability_isotropic_bohr3"] == pytest.approx(
         single["polarizability_isotropic_bohr3"], rel=1e-10)
+
+
+def test_pretrained_lists_the_names_and_shows_a_card_with_its_thresholds(
+        ensemble_folder, tmp_path, capsys, monkeypatch):
+    """`emlp pretrained` lists the known names and whether they are installed; `emlp
+    pretrained NAME` prints the card, the member files and the spread thresholds the
+    calculator uses (calibrated when the export stored a calibration)."""
+    from emlpack import pretrained
+    from emlpack.cli import main
+    from emlpack.pretrained import export_pretrained
+
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path)
+    assert main(["pretrained"]) == 0
+    assert "mini-eqm7 (not installed)" in capsys.readouterr().out
+    cal = {"energy_eV_per_atom": 0.0123, "forces_eV_per_A": 0.456, "quantile": 0.95,
+           "set": "the 3 validation molecules", "configurations": 18, "failed": 0,
+           "members": 2, "pairs": "relaxed"}
+    export_pretrained(sorted(ensemble_folder.glob("*.pt")), tmp_path / "mini-eqm7",
+                      "# mini-eqm7 card\n", spread_calibration=cal)
+    assert main(["pretrained"]) == 0
+    assert "mini-eqm7 (installed)" in capsys.readouterr().out
+    assert main(["pretrained", "mini-eqm7"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("# mini-eqm7 card") and out.count("member: ") == 2
+    assert ("spread warnings above 0.0123 eV/atom (energy), 0.456 eV/Å (largest force"
+            " component): calibrated: exceeded on 5% of 18 configurations of the 3 validation"
+            " molecules") in out
+    assert main(["pretrained", "other"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not an installed pretrained name" in err[0]

@@ -1,4 +1,5 @@
-"""``emlp train``, ``evaluate``, ``demo``: training and testing models."""
+"""``emlp train``, ``evaluate``, ``demo``, ``pretrained``: training, testing and shipped
+models."""
 
 from __future__ import annotations
 
@@ -125,4 +126,39 @@ def add_demo(sub: Subparsers) -> None:
     p.set_defaults(func=run, resumable=True)
 
 
-COMMANDS = [add_train, add_evaluate, add_demo]
+def add_pretrained(sub: Subparsers) -> None:
+    """Register ``emlp pretrained [NAME]``: list the pretrained models, or show one's card."""
+    p = add_parser(sub, "pretrained", help="list the pretrained models, or show one's model"
+                   " card, members and spread-warning thresholds")
+    p.add_argument("name", nargs="?", metavar="NAME", help="a pretrained name (omit: list)")
+
+    def run(args: argparse.Namespace):
+        from emlpack.pretrained import KNOWN, PretrainedError, available, model_card
+
+        if args.name is None:
+            installed = available()
+            for name in sorted(set(KNOWN) | set(installed)):
+                status = "installed" if name in installed else "not installed"
+                print(f"{name} ({status}): {KNOWN.get(name, 'installed here')}")
+            return 0
+        if args.name not in available():
+            raise PretrainedError(
+                f"{args.name}: not an installed pretrained name (installed:"
+                f" {', '.join(available()) or 'none'}; 'emlp pretrained' lists them)")
+        from emlpack.calculators.ensemble import load_pretrained
+
+        print(model_card(args.name))
+        ensemble = load_pretrained(args.name)
+        for m in ensemble.members:
+            print(f"member: {m.source}")
+        t = ensemble.spread_thresholds
+        print(f"spread warnings above {t.energy:.4g} eV/atom (energy), {t.forces:.4g} eV/Å"
+              f" (largest force component): {t.basis}")
+        for notice in ensemble.notices:
+            print(f"notice: {notice}")
+        return 0
+
+    p.set_defaults(func=run)
+
+
+COMMANDS = [add_train, add_evaluate, add_demo, add_pretrained]
