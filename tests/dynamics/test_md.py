@@ -109,6 +109,43 @@ def test_watchdog_rolls_back_a_broken_step(water, tmp_path, monkeypatch):
     assert ref.watchdog_events == 0
 
 
+def test_watchdog_catches_a_step_whose_energy_jumps(water, tmp_path, monkeypatch):
+    """A relaxation that reports convergence at pairs of another energy (as a jump to another
+    minimum does) breaks energy conservation: the watchdog sees the potential energy change
+    by more than the work of the forces, rolls the step back and redoes it from the rigidly
+    moved pairs; the trajectory equals an undisturbed one."""
+    from dataclasses import replace
+
+    from emlpack.pairs.solvers import WarmStartSolver
+
+    model, s = water
+    ref = run_md(model, s, 8, tmp_path / "ref", ensemble="nve", temperature_K=300, seed=2)
+    relax = WarmStartSolver.relax
+    calls = {"n": 0}
+
+    def jumped(self, model, structure):
+        calls["n"] += 1
+        result = relax(self, model, structure)
+        return replace(result, energy=result.energy + 0.05) if calls["n"] == 5 else result
+
+    monkeypatch.setattr(WarmStartSolver, "relax", jumped)
+    r = run_md(model, s, 8, tmp_path / "hit", ensemble="nve", temperature_K=300, seed=2)
+    assert r.watchdog_events == 1 and r.events[0]["fallback"] == "rigid" and r.events[0]["ok"]
+    assert "the pairs left their minimum" in r.events[0]["reason"]
+    assert "(0.0167 eV per core; threshold 0.001)" in r.events[0]["reason"]
+    a, b = _frames(tmp_path / "ref"), _frames(tmp_path / "hit")
+    np.testing.assert_allclose(b[-1].positions, a[-1].positions, atol=1e-6)
+    np.testing.assert_allclose(_econs(b), _econs(a), atol=1e-6)
+    assert ref.watchdog_events == 0
+    # the check itself: trapezoid work against the energy change, per core
+    w = Watchdog()
+    r0, f = np.zeros((2, 3)), np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    r1 = r0 + [[0.01, 0.0, 0.0], [0.0, 0.0, 0.0]]
+    assert w.check_step((0.0, f, r0), (-0.01, f, r1)) == ""         # dU = -F.dR
+    assert "0.0015 eV per core" in w.check_step((0.0, f, r0), (-0.007, f, r1))
+    assert Watchdog(max_energy_mismatch=0).check_step((0.0, f, r0), (1.0, f, r1)) == ""
+
+
 def test_watchdog_stops_with_clear_error_after_writing(water, tmp_path):
     model, s = water
     wd = Watchdog()
@@ -366,7 +403,8 @@ def test_watchdog_thresholds_are_the_documented_ones():
     """docs/md.md: pairs closer than 0.2 Å, a pair farther than 2 Å from every core, or a
     non-positive curvature at the check (every 50 steps) fail the step."""
     w = Watchdog()
-    assert (w.min_pair_distance, w.max_core_distance, w.curvature_every) == (0.2, 2.0, 50)
+    assert (w.min_pair_distance, w.max_core_distance, w.curvature_every,
+            w.max_energy_mismatch) == (0.2, 2.0, 50, 1e-3)
     cores = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
     ok = {"min_curvature": 0.1}
 

@@ -29,7 +29,10 @@ A :class:`Watchdog` checks every step (relaxation converged, no two pairs closer
 ``min_pair_distance``, no pair farther than ``max_core_distance`` from every core, and every
 ``curvature_every`` steps a positive smallest eigenvalue of the exact pair Hessian: Davidson
 iterations on finite-difference Hessian-vector products, preconditioned by the carried model;
-:func:`emlpack.pairs.checks.check_pairs` with the watchdog's thresholds). A failed step is
+:func:`emlpack.pairs.checks.check_pairs` with the watchdog's thresholds; and that the potential
+energy changed by the work of the forces along the step, within ``max_energy_mismatch`` per
+core, so that pairs which jumped to another minimum or stopped short of theirs are caught even
+when the solver reports convergence). A failed step is
 rolled back (positions, momenta, thermostat, calculator and solver state) and retried from the
 pairs of the last good step moved rigidly with their nearest cores, then from
 :func:`emlpack.pairs.guess.guess_pairs`; if both fail the run stops with
@@ -117,6 +120,11 @@ class Watchdog:
     max_core_distance: float = MAX_CORE_DISTANCE
     #: exact pair Hessian (positive curvature) every this many steps (0: never)
     curvature_every: int = 50
+    #: largest |dU + (F0 + F1)/2 . dR| of one step per core (eV): the potential energy must
+    #: change by the work of the forces (trapezoid rule, error ~dt^3: below 1e-4 eV per core
+    #: in the study's stable runs); more means the pairs left their minimum (jumped to another
+    #: one, or stopped short of it); 0: never checked
+    max_energy_mismatch: float = 1e-3
 
     def check(self, cores: np.ndarray, pairs: np.ndarray, diagnostics: dict) -> str:
         """Empty string when fine, else the reasons (the solver's ``diagnostics["reason"]``
@@ -126,6 +134,22 @@ class Watchdog:
                             max_core_distance=self.max_core_distance,
                             min_curvature=diagnostics.get("min_curvature", float("nan")))
         return "; ".join(reasons + ([found] if found else []))
+
+    def check_step(self, before: tuple[float, np.ndarray, np.ndarray],
+                   after: tuple[float, np.ndarray, np.ndarray]) -> str:
+        """Empty string when the potential energy of a step changed by the work of the forces
+        along it, else the reason; ``before`` and ``after``: (energy eV, forces eV/Å, core
+        positions Å) at the two ends of the step."""
+        (e0, f0, r0), (e1, f1, r1) = before, after
+        if not self.max_energy_mismatch:
+            return ""
+        work = float(0.5 * np.sum((f0 + f1) * (r1 - r0)))
+        mismatch = abs(e1 - e0 + work) / max(len(r0), 1)
+        if mismatch <= self.max_energy_mismatch:
+            return ""
+        return (f"the potential energy changed by {e1 - e0:+.4g} eV where the forces did"
+                f" {work:+.4g} eV of work ({mismatch:.3g} eV per core; threshold"
+                f" {self.max_energy_mismatch:g}): the pairs left their minimum")
 
 
 # ------------------------------------------------------------------------------ driver
@@ -404,7 +428,9 @@ class _Run:
         self.write_checkpoint()
 
     # -------------------------------------------------------------- stepping
-    def attempt(self, advance: Callable[[], None]) -> str:
+    def attempt(self, advance: Callable[[], None], snap: dict) -> str:
+        """Run ``advance``; the watchdog's reasons to reject the result (empty: accepted).
+        ``snap``: the state before, whose energy and forces the step's must join smoothly."""
         self.solver.diagnostics = {}
         try:
             advance()
@@ -416,7 +442,14 @@ class _Run:
         self.step_hess += d.get("n_hessians", 0)
         if failed:
             return failed
-        return self.watchdog.check(self.atoms.positions, self.solver.pairs, d)
+        reason = self.watchdog.check(self.atoms.positions, self.solver.pairs, d)
+        before = snap["results"]
+        if reason or snap["atoms_positions"] is None or "forces" not in before:
+            return reason  # the start: no step to join
+        r = self.calc.results
+        return self.watchdog.check_step(
+            (before["energy"], before["forces"], snap["atoms_positions"]),
+            (r["energy"], r["forces"], self.atoms.positions))
 
     def guarded(self, advance: Callable[[], None], what: str) -> None:
         """Run ``advance`` with the watchdog: roll back and retry from fallback pairs."""
@@ -425,7 +458,7 @@ class _Run:
         every = self.watchdog.curvature_every
         if every and self.step % every == 0:
             self.solver.want_curvature = True
-        reason = self.attempt(advance)
+        reason = self.attempt(advance, snap)
         if not reason:
             return
         tried = [f"{self.solver.diagnostics.get('start', 'start')}: {reason}"]
@@ -441,7 +474,7 @@ class _Run:
             self.step_evals, self.step_hess = evals, hess
             self.solver.restart = fb
             self.solver.want_curvature = True
-            reason = self.attempt(advance)
+            reason = self.attempt(advance, snap)
             event["ok"] = not reason
             if not reason:
                 self.log.warning("watchdog: %s %d recovered from %s pairs", what, self.step, fb)
