@@ -13,8 +13,9 @@ from emlpack.io import read_structures
 from tests.cli.helpers import WATER_CORES, run, save_test_model, water_rows, write_xyz
 from tests.conftest import ROOT
 
-COMMANDS = ["train", "evaluate", "demo", "pretrained", "label", "relabel", "convert-reference", "campaign",
-            "ir", "polarizability", "response", "optimize", "md", "md-analysis", "md-ir"]
+COMMANDS = ["train", "evaluate", "demo", "pretrained", "label", "relabel", "convert-reference",
+            "campaign", "ir", "polarizability", "response", "optimize", "md", "md-analysis",
+            "md-ir"]
 
 
 @pytest.fixture(scope="module")

@@ -137,6 +137,27 @@ def test_watchdog_catches_a_step_whose_energy_jumps(water, tmp_path, monkeypatch
     np.testing.assert_allclose(b[-1].positions, a[-1].positions, atol=1e-6)
     np.testing.assert_allclose(_econs(b), _econs(a), atol=1e-6)
     assert ref.watchdog_events == 0
+    # a surface that really jumps (every start gives the higher energy from that step on):
+    # the step is kept, the event says so, and the run goes on with the jump in its
+    # conserved quantity for the analysis to see
+    calls["n"] = 0
+
+    def shifted(self, model, structure):
+        calls["n"] += 1
+        result = relax(self, model, structure)
+        return replace(result, energy=result.energy + 0.05) if calls["n"] >= 5 else result
+
+    monkeypatch.setattr(WarmStartSolver, "relax", shifted)
+    r = run_md(model, s, 8, tmp_path / "jump", ensemble="nve", temperature_K=300, seed=2)
+    assert [e["fallback"] for e in r.events] == ["rigid", "guess", "kept"]
+    assert r.events[-1]["ok"] and r.events[-1]["energy_mismatch_eV_per_core"] == pytest.approx(
+        0.05 / 3, rel=0.01)
+    c = _frames(tmp_path / "jump")
+    assert len(c) == 9
+    jump = np.diff(_econs(c)) - np.diff(_econs(a))
+    assert np.argmax(jump) == r.events[0]["step"] - 1
+    assert jump.max() == pytest.approx(0.05, rel=1e-3)
+    np.testing.assert_allclose(c[-1].positions, a[-1].positions, atol=1e-6)  # forces unchanged
     # the check itself: trapezoid work against the energy change, per core
     w = Watchdog()
     r0, f = np.zeros((2, 3)), np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])

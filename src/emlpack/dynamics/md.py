@@ -35,7 +35,10 @@ core, so that pairs which jumped to another minimum or stopped short of theirs a
 when the solver reports convergence). A failed step is
 rolled back (positions, momenta, thermostat, calculator and solver state) and retried from the
 pairs of the last good step moved rigidly with their nearest cores, then from
-:func:`emlpack.pairs.guess.guess_pairs`; if both fail the run stops with
+:func:`emlpack.pairs.guess.guess_pairs`. When every start fails the energy check alone, the
+model's surface itself jumps there (the pairs' minimum has gone): the result of the smallest
+mismatch is kept and the event says so (``"fallback": "kept"``), and the conserved-quantity
+analysis sees the jump. Otherwise, if both fallbacks fail, the run stops with
 :class:`MDWatchdogError` after writing everything so far.
 
 Outputs in the directory ``output``: ``trajectory.xyz`` (native extxyz, one frame per recorded
@@ -135,18 +138,26 @@ class Watchdog:
                             min_curvature=diagnostics.get("min_curvature", float("nan")))
         return "; ".join(reasons + ([found] if found else []))
 
+    @staticmethod
+    def energy_mismatch(before: tuple[float, np.ndarray, np.ndarray],
+                        after: tuple[float, np.ndarray, np.ndarray]) -> float:
+        """|dU + (F0 + F1)/2 . dR| per core (eV) of a step from ``before`` to ``after``, each
+        (energy eV, forces eV/Å, core positions Å)."""
+        (e0, f0, r0), (e1, f1, r1) = before, after
+        work = float(0.5 * np.sum((f0 + f1) * (r1 - r0)))
+        return abs(e1 - e0 + work) / max(len(r0), 1)
+
     def check_step(self, before: tuple[float, np.ndarray, np.ndarray],
                    after: tuple[float, np.ndarray, np.ndarray]) -> str:
         """Empty string when the potential energy of a step changed by the work of the forces
-        along it, else the reason; ``before`` and ``after``: (energy eV, forces eV/Å, core
-        positions Å) at the two ends of the step."""
-        (e0, f0, r0), (e1, f1, r1) = before, after
+        along it (:meth:`energy_mismatch` at most ``max_energy_mismatch``), else the reason."""
         if not self.max_energy_mismatch:
             return ""
-        work = float(0.5 * np.sum((f0 + f1) * (r1 - r0)))
-        mismatch = abs(e1 - e0 + work) / max(len(r0), 1)
+        mismatch = self.energy_mismatch(before, after)
         if mismatch <= self.max_energy_mismatch:
             return ""
+        (e0, f0, r0), (e1, f1, r1) = before, after
+        work = float(0.5 * np.sum((f0 + f1) * (r1 - r0)))
         return (f"the potential energy changed by {e1 - e0:+.4g} eV where the forces did"
                 f" {work:+.4g} eV of work ({mismatch:.3g} eV per core; threshold"
                 f" {self.max_energy_mismatch:g}): the pairs left their minimum")
@@ -428,8 +439,9 @@ class _Run:
         self.write_checkpoint()
 
     # -------------------------------------------------------------- stepping
-    def attempt(self, advance: Callable[[], None], snap: dict) -> str:
-        """Run ``advance``; the watchdog's reasons to reject the result (empty: accepted).
+    def attempt(self, advance: Callable[[], None], snap: dict) -> tuple[str, float | None]:
+        """Run ``advance``; the watchdog's reasons to reject the result (empty: accepted) and,
+        when the energy check is the only one that failed, the step's energy mismatch.
         ``snap``: the state before, whose energy and forces the step's must join smoothly."""
         self.solver.diagnostics = {}
         try:
@@ -441,26 +453,31 @@ class _Run:
         self.step_evals += d.get("n_evaluations", 0)
         self.step_hess += d.get("n_hessians", 0)
         if failed:
-            return failed
+            return failed, None
         reason = self.watchdog.check(self.atoms.positions, self.solver.pairs, d)
         before = snap["results"]
         if reason or snap["atoms_positions"] is None or "forces" not in before:
-            return reason  # the start: no step to join
+            return reason, None  # at the start there is no step to join
         r = self.calc.results
-        return self.watchdog.check_step(
-            (before["energy"], before["forces"], snap["atoms_positions"]),
-            (r["energy"], r["forces"], self.atoms.positions))
+        ends = ((before["energy"], before["forces"], snap["atoms_positions"]),
+                (r["energy"], r["forces"], self.atoms.positions))
+        reason = self.watchdog.check_step(*ends)
+        return reason, (self.watchdog.energy_mismatch(*ends) if reason else None)
 
     def guarded(self, advance: Callable[[], None], what: str) -> None:
-        """Run ``advance`` with the watchdog: roll back and retry from fallback pairs."""
+        """Run ``advance`` with the watchdog: roll back and retry from fallback pairs. When
+        every start fails the energy check alone, the surface itself is discontinuous there
+        (the pairs' minimum has gone): the result of the smallest mismatch is kept, and the
+        event says so (the conserved-quantity analysis then sees the jump)."""
         snap = self.snapshot()
         self.step_evals = self.step_hess = 0
         every = self.watchdog.curvature_every
         if every and self.step % every == 0:
             self.solver.want_curvature = True
-        reason = self.attempt(advance, snap)
+        reason, mismatch = self.attempt(advance, snap)
         if not reason:
             return
+        kept = (mismatch, self.snapshot()) if mismatch is not None else None
         tried = [f"{self.solver.diagnostics.get('start', 'start')}: {reason}"]
         # rigid follow needs a last good step; at the start only the fresh guess is left
         fallbacks = ["rigid", "guess"] if snap["solver"]["history"] else ["guess"]
@@ -474,23 +491,35 @@ class _Run:
             self.step_evals, self.step_hess = evals, hess
             self.solver.restart = fb
             self.solver.want_curvature = True
-            reason = self.attempt(advance, snap)
+            reason, mismatch = self.attempt(advance, snap)
             event["ok"] = not reason
             if not reason:
                 self.log.warning("watchdog: %s %d recovered from %s pairs", what, self.step, fb)
                 return
+            if mismatch is not None and (kept is None or mismatch < kept[0]):
+                kept = (mismatch, self.snapshot())
             tried.append(f"{fb}: {reason}")
+        if kept is not None:
+            evals, hess = self.step_evals, self.step_hess
+            self.restore(kept[1])
+            self.step_evals, self.step_hess = evals, hess
+            self.events.append({"step": self.step, "reason": reason, "fallback": "kept",
+                                "ok": True, "energy_mismatch_eV_per_core": kept[0]})
+            self.log.warning("watchdog: %s %d: every start relaxes to pairs whose energy jumps"
+                             " (%.3g eV per core): kept, the model's surface is discontinuous"
+                             " here", what, self.step, kept[0])
+            return
         failed = self.step
         self.restore(snap)
         if what == "step":  # keep everything up to the last good step
             self.step -= 1
             self.flush()
-            kept = f"the trajectory and checkpoint up to step {self.step} are in {self.dir}"
+            kept_text = f"the trajectory and checkpoint up to step {self.step} are in {self.dir}"
         else:
-            kept = "nothing written"
+            kept_text = "nothing written"
         raise MDWatchdogError(
             f"MD {what} {failed}: the electron pairs could not be relaxed ("
-            + " | ".join(tried) + f"); stopped, {kept}")
+            + " | ".join(tried) + f"); stopped, {kept_text}")
 
     def initial(self) -> None:
         """Velocities and the relaxed pairs of step 0."""
