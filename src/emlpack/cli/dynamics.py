@@ -61,6 +61,9 @@ def add_md(sub: Subparsers) -> None:
     p.add_argument("--checkpoint-every", type=int, default=10, help="flush every N steps")
     p.add_argument("--curvature-every", type=int, default=50,
                    help="exact pair Hessian (curvature check) every N steps")
+    p.add_argument("--max-energy-mismatch", type=float, default=1e-3,
+                   help="largest |dU + (F0+F1)/2.dR| of a step per core, eV: a larger one means"
+                   " the pairs left their minimum (redone from other starts; 0: not checked)")
     p.add_argument("--seed", type=int, default=0, help="seed of the initial velocities")
     p.add_argument("--no-resume", action="store_true", help="start over (deletes the old run)")
     p.add_argument("--no-pairs", action="store_true",
@@ -82,6 +85,7 @@ def add_md(sub: Subparsers) -> None:
                              " proportional to T); use --nve for a run from rest")
         positive(args.fmax, "--fmax")
         positive(args.tdamp, "--tdamp")
+        positive(args.max_energy_mismatch, "--max-energy-mismatch", allow_zero=True)
         for name in ("record_every", "checkpoint_every", "curvature_every"):
             positive(getattr(args, name), "--" + name.replace("_", "-"))
         set_threads(args.threads)
@@ -104,7 +108,8 @@ def add_md(sub: Subparsers) -> None:
                 seed=args.seed, tdamp_fs=args.tdamp, relax=args.relax, fmax=args.fmax,
                 record_every=args.record_every, checkpoint_every=args.checkpoint_every,
                 resume=not args.no_resume,
-                watchdog=Watchdog(curvature_every=args.curvature_every),
+                watchdog=Watchdog(curvature_every=args.curvature_every,
+                                  max_energy_mismatch=args.max_energy_mismatch),
             )
         except MDWatchdogError as exc:  # a failed computation, not a user error: exit 3
             print(f"emlp md: watchdog: {exc}", file=sys.stderr)
