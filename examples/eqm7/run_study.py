@@ -1715,9 +1715,10 @@ def spread_card(calibration: dict | None, check: dict | None) -> list[str]:
                 f" energy, {h.forces} eV/Å for the largest force component): they are not"
                 " calibrated for this ensemble."]
     lines = [
-        f"The calculator and every command warn when the spread across the members exceeds"
+        f"The calculator warns when the spread across the members exceeds"
         f" {calibration['energy_eV_per_atom']:.4f} eV/atom (energy) or"
-        f" {calibration['forces_eV_per_A']:.3f} eV/Å (largest force component): the"
+        f" {calibration['forces_eV_per_A']:.3f} eV/Å (largest force component), every command"
+        " on the energy: the"
         f" {calibration['quantile']:.0%} quantiles of the spreads on the"
         f" {calibration['configurations']} configurations of {calibration['set']}, with the"
         f" pairs {calibration['pairs']} (none of these molecules was trained on; stored in"
