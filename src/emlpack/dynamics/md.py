@@ -139,13 +139,19 @@ class Watchdog:
         return "; ".join(reasons + ([found] if found else []))
 
     @staticmethod
+    def _energy_and_work(before: tuple[float, np.ndarray, np.ndarray],
+                         after: tuple[float, np.ndarray, np.ndarray]) -> tuple[float, float, int]:
+        """(dU, (F0 + F1)/2 . dR, cores) of a step, eV."""
+        (e0, f0, r0), (e1, f1, r1) = before, after
+        return e1 - e0, float(0.5 * np.sum((f0 + f1) * (r1 - r0))), max(len(r0), 1)
+
+    @staticmethod
     def energy_mismatch(before: tuple[float, np.ndarray, np.ndarray],
                         after: tuple[float, np.ndarray, np.ndarray]) -> float:
         """|dU + (F0 + F1)/2 . dR| per core (eV) of a step from ``before`` to ``after``, each
         (energy eV, forces eV/Å, core positions Å)."""
-        (e0, f0, r0), (e1, f1, r1) = before, after
-        work = float(0.5 * np.sum((f0 + f1) * (r1 - r0)))
-        return abs(e1 - e0 + work) / max(len(r0), 1)
+        change, work, n = Watchdog._energy_and_work(before, after)
+        return abs(change + work) / n
 
     def check_step(self, before: tuple[float, np.ndarray, np.ndarray],
                    after: tuple[float, np.ndarray, np.ndarray]) -> str:
@@ -153,12 +159,11 @@ class Watchdog:
         along it (:meth:`energy_mismatch` at most ``max_energy_mismatch``), else the reason."""
         if not self.max_energy_mismatch:
             return ""
-        mismatch = self.energy_mismatch(before, after)
+        change, work, n = self._energy_and_work(before, after)
+        mismatch = abs(change + work) / n
         if mismatch <= self.max_energy_mismatch:
             return ""
-        (e0, f0, r0), (e1, f1, r1) = before, after
-        work = float(0.5 * np.sum((f0 + f1) * (r1 - r0)))
-        return (f"the potential energy changed by {e1 - e0:+.4g} eV where the forces did"
+        return (f"the potential energy changed by {change:+.4g} eV where the forces did"
                 f" {work:+.4g} eV of work ({mismatch:.3g} eV per core; threshold"
                 f" {self.max_energy_mismatch:g}): the pairs left their minimum")
 
