@@ -74,3 +74,31 @@ def test_the_training_config_refuses_bad_numbers_before_training(override, match
         load_config(None, [override])
     assert load_config(None, ["training.max_time_minutes=null", "training.patience=null",
                               "training.lr=0.0"])["training"]["lr"] == 0.0
+
+
+def test_the_training_device_is_checked_before_training(monkeypatch):
+    import torch
+
+    from emlpack.train.config import ConfigError, load_config, training_device
+
+    with pytest.raises(ConfigError, match="training.device must be auto, cpu, cuda or cuda:N,"
+                                          " got 'gpu'"):
+        load_config(None, ["training.device=gpu"])
+    with pytest.raises(ConfigError, match="training.device must be .* got 'meta'"):
+        load_config(None, ["training.device=meta"])
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ConfigError, match="training.device=cuda: PyTorch sees no CUDA GPU"):
+        load_config(None, ["training.device=cuda"])
+    assert training_device("auto") == torch.device("cpu")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    assert training_device("auto") == torch.device("cuda", 0)
+    assert training_device("cuda:1") == torch.device("cuda", 1)
+    # torchrun: a GPU per process, or the CPU when there are fewer GPUs than processes
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    monkeypatch.setenv("LOCAL_WORLD_SIZE", "2")
+    assert training_device("auto") == torch.device("cpu")
+    with pytest.raises(ConfigError, match="2 processes on this node and 1 GPU"):
+        training_device("cuda")
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    assert training_device("auto") == training_device("cuda") == torch.device("cuda", 1)

@@ -26,8 +26,10 @@ from tests.conftest import shared_path
 
 TINY = {
     "model": {"n_features": 16, "n_filters": 8, "n_rbf": 8, "n_interactions": 1},
+    # the CPU: exact resume compares weights to 1e-5, which a GPU's float32 atomic sums do
+    # not reproduce run to run (the GPU's own test below is in float64)
     "training": {"batch_size": 8, "max_epochs": 3, "lr": 1e-2, "threads": 1,
-                 "decay_epochs": 2.0, "eval_batch_size": 16},
+                 "decay_epochs": 2.0, "eval_batch_size": 16, "device": "cpu"},
     "output": {"progress": False},
 }
 
@@ -149,6 +151,32 @@ def test_ddp_two_processes_match_one_process(tmp_path, small_data):
     w2 = read_checkpoint(tmp_path / "two" / "last.pt")["state_dict"]
     for key in w1:
         torch.testing.assert_close(w1[key], w2[key], rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (training.device)")
+def test_a_run_on_the_gpu_matches_the_cpu_and_resumes_on_the_cpu(tmp_path, small_data):
+    """float64 on the GPU follows the CPU's loss curve; its checkpoints (CPU tensors, optimizer
+    state included) resume on the CPU as the CPU run goes on."""
+    common = {"training": {"dtype": "float64"}, "augmentation": {"enabled": True,
+                                                                  "probability": 0.5}}
+    cpu = load_config(_config(tmp_path, small_data, "cpu", **common),
+                      ["training.max_epochs=4", "training.device=cpu"])
+    train(cpu)
+    gpu = load_config(_config(tmp_path, small_data, "gpu", **common),
+                      ["training.max_epochs=2", "training.device=cuda"])
+    train(gpu)
+    state = read_checkpoint(tmp_path / "gpu" / "last.pt")
+    assert all(t.device.type == "cpu" for t in state["state_dict"].values())
+    train(load_config(tmp_path / "gpu.yaml", ["training.max_epochs=4", "training.device=cpu"]))
+    a, b = _log(tmp_path / "cpu"), _log(tmp_path / "gpu")
+    assert [r["epoch"] for r in b] == ["1", "2", "3", "4"]
+    for ra, rb in zip(a, b, strict=True):
+        for key in ("train_loss", "val_loss", "val_forces_mae", "lr", "step", "n_augmented"):
+            assert float(ra[key]) == pytest.approx(float(rb[key]), rel=1e-6), key
+    w_cpu = read_checkpoint(tmp_path / "cpu" / "last.pt")["state_dict"]
+    w_gpu = read_checkpoint(tmp_path / "gpu" / "last.pt")["state_dict"]
+    for key in w_cpu:
+        torch.testing.assert_close(w_cpu[key], w_gpu[key], rtol=1e-6, atol=1e-9)
 
 
 def test_ensemble_of_seeds_and_evaluation_table(tmp_path, small_data):

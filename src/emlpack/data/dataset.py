@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -189,6 +189,15 @@ class Batch:
     indices: list[int]
     n_augmented: int = 0
     n_singular: int = 0
+
+    def to(self, device: torch.device | str) -> Batch:
+        """A copy with the graph and the target tensors on ``device``."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        for name, value in out.items():
+            if isinstance(value, torch.Tensor):
+                out[name] = value.to(device)
+        out["graph"] = self.graph.to(device=device)
+        return Batch(**out)
 
 
 class Collater:

@@ -9,8 +9,10 @@ Unknown keys are errors (a misspelt key never slips through silently).
 from __future__ import annotations
 
 import copy
+import os
 from pathlib import Path
 
+import torch
 import yaml
 
 from emlpack._files import write_text_atomic
@@ -46,6 +48,9 @@ DEFAULTS: dict = {
         "max_time_minutes": None,
         "patience": None,  # early stopping: epochs without improvement (None: off)
         "threads": None,
+        # where the model trains: auto (the first CUDA GPU when PyTorch sees one, else the CPU),
+        # cpu, cuda or cuda:N; batches are built on the CPU and moved there
+        "device": "auto",
         "eval_batch_size": 64,
         # a checkpoint (best.pt / last.pt of an earlier run) whose weights start a fresh run
         # (fine-tuning, e.g. on a data set that grew): same model config; new optimizer and
@@ -107,7 +112,8 @@ def validate(cfg: dict) -> None:
     """Refuse (:class:`ConfigError`) an unknown split or reference, a dtype other than float32 or
     float64, a batch size, epoch limit or patience that is not a positive integer, a negative
     learning rate, an Adam epsilon, decay period or time limit that is not a positive number, a
-    decay factor outside (0, 1], a negative loss weight, and a bad model section."""
+    decay factor outside (0, 1], a negative loss weight, a device PyTorch cannot use, and a bad
+    model section."""
     d, t = cfg["data"], cfg["training"]
     if d["split"] not in ("auto", "molecule", "configuration", "card"):
         raise ConfigError(f"data.split must be auto, molecule, configuration or card, got"
@@ -117,6 +123,7 @@ def validate(cfg: dict) -> None:
                           f" {d['reference']!r}")
     if t["dtype"] not in ("float32", "float64"):
         raise ConfigError(f"training.dtype must be float32 or float64, got {t['dtype']!r}")
+    training_device(t["device"])
     for key in ("batch_size", "max_epochs"):
         if not isinstance(t[key], int) or t[key] < 1:
             raise ConfigError(f"training.{key} must be a positive integer, got {t[key]!r}")
@@ -139,6 +146,39 @@ def validate(cfg: dict) -> None:
         ModelConfig.from_dict(cfg["model"])
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"model: {exc}") from None
+
+
+def training_device(name: str) -> torch.device:
+    """The device of ``training.device`` for this process. ``auto``: a CUDA GPU when PyTorch
+    sees one for every process of the node (``torchrun``'s LOCAL_WORLD_SIZE), else the CPU;
+    ``cuda``: the GPU of the process's LOCAL_RANK; ``cuda:N``, ``cpu`` as named. A GPU that is
+    not there raises :class:`ConfigError`."""
+    name = str(name)
+    rank = int(os.environ.get("LOCAL_RANK", "0"))
+    per_node = int(os.environ.get("LOCAL_WORLD_SIZE", "1"))
+    if name == "auto":
+        gpus = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        return torch.device("cuda", rank) if gpus >= per_node else torch.device("cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ConfigError(f"training.device must be auto, cpu, cuda or cuda:N, got {name!r}")\
+            from None
+    if device.type not in ("cpu", "cuda"):
+        raise ConfigError(f"training.device must be auto, cpu, cuda or cuda:N, got {name!r}")
+    if device.type == "cpu":
+        return device
+    if not torch.cuda.is_available():
+        raise ConfigError(f"training.device={name}: PyTorch sees no CUDA GPU here"
+                          " (training.device=cpu, or auto)")
+    if device.index is None:
+        if per_node > torch.cuda.device_count():
+            raise ConfigError(
+                f"training.device={name}: {per_node} processes on this node and"
+                f" {torch.cuda.device_count()} GPU(s); one GPU per process (or"
+                " training.device=cpu)")
+        device = torch.device("cuda", rank)
+    return device
 
 
 def _number(value: object) -> bool:

@@ -70,7 +70,7 @@ from emlpack.heap import reused_heap
 from emlpack.interrupts import terminate_as_interrupt
 from emlpack.nn.checkpoint import read_checkpoint, save_model
 from emlpack.nn.potential import EMLP, ModelConfig
-from emlpack.train.config import ConfigError, dump_config
+from emlpack.train.config import ConfigError, dump_config, training_device
 from emlpack.train.loss import TERMS, LossWeights, Metrics, combine, loss_terms, predict
 
 if TYPE_CHECKING:
@@ -118,7 +118,12 @@ class Trainer:
     def __init__(self, cfg: dict) -> None:
         self.cfg = cfg
         t = cfg["training"]
-        self.dist = _init_distributed()
+        #: where the model and the batches live (``training.device``); batches are built on
+        #: the CPU (neighbour lists, augmentation) and moved there
+        self.device = training_device(t["device"])
+        if self.device.type == "cuda":
+            torch.cuda.set_device(self.device)
+        self.dist = _init_distributed(self.device)
         self.rank = dist.get_rank() if self.dist else 0
         self.world = dist.get_world_size() if self.dist else 1
         if t["threads"]:
@@ -151,7 +156,7 @@ class Trainer:
                                           store_hydrides)
         self.model_config = ModelConfig.from_dict(cfg["model"])
         torch.manual_seed(t["seed"])
-        self.model = EMLP(self.model_config).to(self.dtype)
+        self.model = EMLP(self.model_config).to(self.dtype).to(self.device)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=t["lr"], eps=t["adam_eps"])
         #: what the loss is differentiated with respect to (:meth:`_train_epoch`)
         self.trained_parameters = [p for g in self.optimizer.param_groups for p in g["params"]]
@@ -163,7 +168,8 @@ class Trainer:
             self.optimizer, lambda step: factor ** (step / decay_steps))
         self.ddp = self.model
         if self.dist:
-            self.ddp = torch.nn.parallel.DistributedDataParallel(self.model)
+            self.ddp = torch.nn.parallel.DistributedDataParallel(
+                self.model, device_ids=[self.device] if self.device.type == "cuda" else None)
         aug = AugmentationConfig(**cfg["augmentation"])
         c = self.model_config
         self.collater = Collater(self.reference, c.cutoff, c.gcut, self.dtype,
@@ -205,7 +211,7 @@ class Trainer:
             c = self.model_config
             self._val_batches = [
                 make_batch([self.structures[int(i)] for i in val[k:k + bs]], self.reference,
-                           c.cutoff, c.gcut, self.dtype, val[k:k + bs].tolist())
+                           c.cutoff, c.gcut, self.dtype, val[k:k + bs].tolist()).to(self.device)
                 for k in range(0, len(val), bs)
             ]
         return self._val_batches
@@ -320,7 +326,8 @@ class Trainer:
             f"{len(self.structures)} structures: train {len(self.split['train'])}, val"
             f" {len(self.split['val'])}, test {len(self.split['test'])} (by"
             f" {self.cfg['data']['split']}); reference {self.reference.kind};"
-            f" {self.model.n_parameters()} parameters; {self.world} process(es)")
+            f" {self.model.n_parameters()} parameters; {self.world} process(es) on"
+            f" {self.device}")
         writer = self._tensorboard()
         t_start = self._snapshot_time = time.monotonic()
         self._saved_step = self._snapshot_step = self.step
@@ -394,11 +401,12 @@ class Trainer:
         bar = tqdm(batches, total=self.steps_per_epoch, desc=f"epoch {self.epoch + 1}",
                    disable=not progress, leave=False, file=sys.stderr)
         for batch in bar:
+            batch = batch.to(self.device)
             pred = predict(self.ddp, batch, self.reference)
             terms = loss_terms(pred, batch)
             counts = torch.stack([terms[k][1] for k in TERMS]).double()
             if self.dist:
-                dist.all_reduce(counts)
+                self._all_reduce(counts)
             gcounts = dict(zip(TERMS, counts.to(pred["forces"].dtype), strict=True))
             loss = combine(terms, self.weights, gcounts) * self.world
             self.optimizer.zero_grad(set_to_none=True)
@@ -416,7 +424,7 @@ class Trainer:
             stats = torch.cat([parts, torch.tensor(
                 [batch.n_augmented, batch.n_singular, 0.0], dtype=torch.float64)])
             if self.dist:
-                dist.all_reduce(stats)
+                self._all_reduce(stats)
             stats[-1] = sum(getattr(self.weights, k) * stats[n] for n, k in enumerate(TERMS))
             sums += stats
             bar.set_postfix(loss=f"{float(stats[-1]):.4g}")
@@ -436,11 +444,20 @@ class Trainer:
             metrics.update(pred, batch)
         tensor = metrics.tensor()
         if self.dist:
-            dist.all_reduce(tensor)
+            self._all_reduce(tensor)
             metrics.load_tensor(tensor)
         out = metrics.result()
         out["loss"] = metrics.loss(self.weights) if out else math.inf
         return out
+
+    def _all_reduce(self, tensor: torch.Tensor) -> None:
+        """Sum the CPU ``tensor`` over the processes, in place (through the GPU under NCCL)."""
+        if self.device.type == "cuda":
+            on_device = tensor.to(self.device)
+            dist.all_reduce(on_device)
+            tensor.copy_(on_device.cpu())
+        else:
+            dist.all_reduce(tensor)
 
     # ------------------------------------------------------------------ snapshots
     SNAPSHOT_FILES = ("last.pt", "best.pt", "log.csv")
@@ -547,12 +564,12 @@ class Trainer:
         return SummaryWriter(str(self.run_dir / "tensorboard"))
 
 
-def _init_distributed() -> bool:
+def _init_distributed(device: torch.device) -> bool:
+    """Join the ``torchrun`` process group (NCCL on GPUs, else Gloo); False without one."""
     if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
         return False
     if not dist.is_initialized():
-        backend = "nccl" if torch.cuda.is_available() else "gloo"
-        dist.init_process_group(backend)
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
     return True
 
 
