@@ -5,9 +5,10 @@
 #       (on the GPU machine, from the project root) trains the models GROUP/seedK, K in the
 #       comma-separated SEEDS, one process each, side by side on the GPU (training.device=auto:
 #       the study's small models leave a GPU mostly idle, so processes share it well), with
-#       config.yaml's schedule; after SECONDS (or when one has ended) it stops them (SIGTERM: each keeps its last
-#       finished epoch) and packs every run folder's last.pt, best.pt and log.csv into
-#       OUT/models.tar, the training logs into OUT/train-K.log
+#       config.yaml's schedule, each from its newest snapshot when there is one; after
+#       SECONDS (or when one has ended) it stops them (SIGTERM: each keeps its last finished
+#       epoch) and packs every run folder's last.pt, best.pt and log.csv into OUT/models.tar,
+#       the training logs into OUT/train-K.log
 #   bash examples/eqm7/gpu_models.sh import TAR
 #       (here) turns the packed runs into the snapshots the study's CPU training resumes from
 #       (examples/eqm7/snapshots/final/GROUP/seedK/step-N, committed): the CPU goes on where
@@ -23,6 +24,11 @@ train)
   mkdir -p "$out" "$work"
   pids=()
   for k in ${seeds//,/ }; do
+    # from the newest committed snapshot of the model, when there is one
+    snap=$(ls -d "$SNAPSHOTS/$group/seed$k"/step-* 2>/dev/null | tail -1 || true)
+    if [ -n "$snap" ] && [ ! -f "$work/models/$group/seed$k/last.pt" ]; then
+      mkdir -p "$work/models/$group/seed$k" && cp "$snap"/* "$work/models/$group/seed$k/"
+    fi
     PYTHONPATH="src:${PYTHONPATH:-}" PYTHONUNBUFFERED=1 "${PYTHON:-python3}" \
       examples/eqm7/run_study.py train \
       "groups=[$group]" "seeds=[$k]" "workdir=$work" > "$out/train-$k.log" 2>&1 &
@@ -46,12 +52,14 @@ import sys
 from emlpack.nn.checkpoint import read_checkpoint
 print(read_checkpoint(sys.argv[1])['metadata']['training']['step'])" "$run/last.pt")
     dest=$SNAPSHOTS/$group/$seed
-    if ls -d "$dest"/step-* > /dev/null 2>&1; then
-      echo "$dest already has a snapshot: not replaced" >&2
+    older=$(ls -d "$dest"/step-* 2>/dev/null || true)
+    if [ -n "$older" ] && [ "$(basename "$(echo "$older" | tail -1)")" \> "$(printf 'step-%09d' "$step")" ]; then
+      echo "$dest has a newer snapshot than step $step: not replaced" >&2
       continue
     fi
     mkdir -p "$dest/.tmp" && cp "$run"/{last.pt,best.pt,log.csv} "$dest/.tmp/"
     mv "$dest/.tmp" "$dest/$(printf 'step-%09d' "$step")"
+    for old in $older; do [ "$old" != "$dest/$(printf 'step-%09d' "$step")" ] && rm -rf "$old"; done
     echo "$dest: step $step"
   done
   rm -rf "$tmp"
