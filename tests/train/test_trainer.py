@@ -237,6 +237,24 @@ def test_snapshots_outlive_the_run_folder_and_resume_exactly(tmp_path, small_dat
         train(load_config(tmp_path / "run.yaml", ["training.max_epochs=5"]))
 
 
+def test_a_snapshot_removes_the_older_snapshots_and_keeps_a_newer_one(tmp_path, small_data):
+    """A newer snapshot in the folder came from a machine that went further (a GPU): a run
+    still at an older step keeps it, and takes it when started again."""
+    from emlpack.train.trainer import Trainer
+
+    snaps = tmp_path / "snapshots"
+    (snaps / "step-000000100").mkdir(parents=True)
+    (snaps / "step-000000010").mkdir()
+    trainer = Trainer(load_config(_config(tmp_path, small_data, "run"),
+                                  [f"output.snapshot_dir={snaps}"]))
+    trainer._saved_step = 50
+    trainer._snapshot()
+    assert sorted(p.name for p in snaps.iterdir()) == ["step-000000050", "step-000000100"]
+    trainer._saved_step = 150
+    trainer._snapshot()
+    assert sorted(p.name for p in snaps.iterdir()) == ["step-000000150"]
+
+
 @pytest.mark.parametrize("stop", ["ctrl-c", "kill"])
 def test_an_interrupted_run_leaves_a_snapshot_of_its_last_finished_epoch(tmp_path, small_data,
                                                                         monkeypatch, stop):

@@ -475,12 +475,19 @@ class Trainer:
             time.monotonic() - self._snapshot_time >= 60.0 * float(o["snapshot_minutes"]))
 
     def _snapshot(self) -> Path:
-        """Copy the run's state into a new ``step-NNNNNNNNN`` folder; remove the older ones;
-        commit with ``output.snapshot_commit``."""
+        """Copy the run's state into a new ``step-NNNNNNNNN`` folder; remove the older ones (a
+        newer one, from another machine, stays); commit with ``output.snapshot_commit``."""
         o = self.cfg["output"]
         root = Path(o["snapshot_dir"])
         final = root / f"step-{self._saved_step:09d}"  # the step of last.pt
-        older = [p for p in self._snapshots() if p != final]
+        # only the older ones go: a newer snapshot came from elsewhere (another machine went
+        # further, e.g. a GPU) and is what the next start of this run should take
+        older = [p for p in self._snapshots() if _snapshot_step(p) < self._saved_step]
+        newer = [p.name for p in self._snapshots() if _snapshot_step(p) > self._saved_step]
+        if newer:
+            log.warning("%s holds newer snapshots than this run's step %d (%s): kept; the"
+                        " run resumes from the newest when started again", root,
+                        self._saved_step, ", ".join(newer))
         tmp = root / f".{final.name}.tmp"
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
@@ -513,7 +520,7 @@ class Trainer:
         last = self.run_dir / "last.pt"
         run_step = (int(read_checkpoint(last)["metadata"]["training"]["step"])
                     if last.exists() else -1)
-        if int(newest.name.split("-")[1]) <= run_step:
+        if _snapshot_step(newest) <= run_step:
             return
         self.run_dir.mkdir(parents=True, exist_ok=True)
         for name in self.SNAPSHOT_FILES:
@@ -562,6 +569,11 @@ class Trainer:
                         " logging to log.csv only")
             return None
         return SummaryWriter(str(self.run_dir / "tensorboard"))
+
+
+def _snapshot_step(folder: Path) -> int:
+    """The training step of a snapshot folder ``step-NNNNNNNNN``."""
+    return int(folder.name.split("-")[1])
 
 
 def _init_distributed(device: torch.device) -> bool:
