@@ -1248,6 +1248,15 @@ def training_setup(best: Path) -> dict | None:
 
 
 def data_summary(study: Study) -> dict:
+    """The data set's size, split and training domain; ``complete``: the campaign's target is
+    reached (None for a folder without the campaign's settings, e.g. a prefix of shards)."""
+    from emlpack.errors import EmlpackError
+    from emlpack.qm.campaign import campaign_target
+
+    try:
+        complete = bool(campaign_target(study.data)[1]["reached"])
+    except (EmlpackError, OSError, KeyError, ValueError):  # no campaign.yaml, say
+        complete = None
     data = study.shards()
     split = data.split_indices()
     mols = {k: len({data.structures[i].info.get("molecule_id") for i in v})
@@ -1258,7 +1267,7 @@ def data_summary(study: Study) -> dict:
                          for k, v in split.items()},
             "molecules_listed": len(data.molecules),
             "hydrides": data.hydrides is not None, "failures": len(data.failures),
-            "train_domain": study.train_domain()}
+            "complete": complete, "train_domain": study.train_domain()}
 
 
 def stage_table(study: Study, out_dir: Path | None = None) -> dict:
@@ -1524,7 +1533,7 @@ def stage_export(study: Study) -> Path:
     calibration, check = spread_calibration(study, models)
     card = model_card(results, name, group, len(models), results_md, calibration, check)
     files = export_pretrained(models, folder, card,
-                              notice=None if final else preliminary_notice(results, name, group),
+                              notice=preliminary_notice(results, name, group),
                               data_path=e.get("data_label"), domain=study.train_domain(),
                               spread_calibration=calibration)
     study.work["export"] += 1
@@ -1577,8 +1586,12 @@ def spread_calibration(study: Study, models: list[Path]) -> tuple[dict | None, d
     return calibration, check
 
 
-def preliminary_notice(result: dict, name: str, group: str) -> str:
-    """The line every calculation with a preliminary export reports among its warnings."""
+def preliminary_notice(result: dict, name: str, group: str) -> str | None:
+    """The line every calculation with a preliminary export reports among its warnings; None
+    for a final study or models trained on the complete data set (the card then says what the
+    study still computes)."""
+    if result["status"] == "final" or result["data"].get("complete"):
+        return None
     d = result["data"]["by_split"]["train"]
     g = (((result.get("evaluation") or {}).get("test") or {}).get("groups") or {}).get(group)
     errors = ""
@@ -1616,7 +1629,17 @@ def model_card(result: dict, name: str, group: str, n_models: int,
         f"# {name}: an eMLP ensemble trained on mini-eQM7", "",
         f"Status: **{result['status']}** (generated {result['generated']} by"
         " `examples/eqm7/run_study.py export`).", ""]
-    if result["status"] != "final":
+    if result["status"] != "final" and d.get("complete"):
+        lines += [
+            f"**Study in progress.** Trained on the complete data set ({d['configurations']}"
+            " configurations, the campaign's target), with a small architecture trained on 2"
+            " CPU cores; its errors below are several times the paper's (the paper trained on"
+            " 3.4 million configurations), so check what matters with DFT and watch the"
+            " ensemble spread and the warnings. The study's remaining results (the"
+            " non-augmented models, every member's MD, the IR frequencies of every test"
+            " molecule) are still being computed: the lines below give what is measured so"
+            " far, and say on how much.", ""]
+    elif result["status"] != "final":
         lines += [
             f"**Preliminary.** Trained on the {d['configurations']} configurations labeled so"
             " far, a fraction of the campaign's target (1500 configurations of 250 molecules),"
@@ -1674,12 +1697,19 @@ def model_card(result: dict, name: str, group: str, n_models: int,
     else:
         lines.append("*Not evaluated.*")
     if ir:
+        n_ir = (result.get("ir") or {}).get("n_molecules")
+        over = (f" over the {n_ir} of {by['test']['molecules']} test molecules with a DFT"
+                " Hessian so far" if n_ir and n_ir < by["test"]["molecules"] else "")
         lines.append(f"Harmonic IR frequencies: MAE {_ms(ir['frequency_mae'], 1, 1)} cm⁻¹"
-                     " against PBE0/aug-cc-pVTZ (modes in ascending order).")
+                     f" against PBE0/aug-cc-pVTZ{over} (modes in ascending order).")
     if md:
-        lines.append(f"MD (500 fs NVT at 300 K): {md['runs']} runs, {md['stable']} stable,"
-                     f" {md['unstable']} unstable, {md['bonding_changed']} with bonding"
-                     " changed.")
+        ran = sorted({r["model"] for r in (result.get("md") or {}).get("runs", [])
+                      if r.get("group") == group})
+        of = (f" (members {', '.join(m.removeprefix(f'{group}-s') for m in ran)} of"
+              f" {n_models} so far)" if 0 < len(ran) < n_models else "")
+        lines.append(f"MD (500 fs NVT at 300 K){of}: {md['runs']} runs, {md['stable']} stable,"
+                     f" {md['transition']} transition, {md['unstable']} unstable,"
+                     f" {md['bonding_changed']} with bonding changed.")
     lines += ["", "## Uncertainty", "", *spread_card(calibration, check)]
     size = (d.get("train_domain") or {}).get("max_heavy_atoms")
     largest = (f" Its training molecules have at most {size} heavy atoms (the data set's"

@@ -206,6 +206,27 @@ def test_export_ships_the_augmented_ensemble_with_its_card(study_run):
     assert "of the test molecules they warn on" in card
 
 
+def test_models_on_the_complete_data_set_carry_no_notice_and_say_what_is_pending(study_run):
+    """A study still in progress whose models trained on the complete data set: no
+    preliminary notice on every calculation; the card says what is still computed and on how
+    much each line was measured."""
+    mod, cfg, study, root, _ = study_run
+    result = json.loads((root / "results" / "results.json").read_text())
+    assert result["data"]["complete"] is None  # the tiny folder has no campaign settings
+    assert mod.preliminary_notice(result, "mini-eqm7", "aug")
+    result["data"]["complete"] = True
+    assert mod.preliminary_notice(result, "mini-eqm7", "aug") is None
+    result["ir"]["n_molecules"] = 0 if not result["ir"].get("n_molecules") else 1
+    result["data"]["by_split"]["test"]["molecules"] = 2
+    card = mod.model_card(result, "mini-eqm7", "aug", 3)
+    assert "**Study in progress.** Trained on the complete data set" in card
+    assert "**Preliminary.**" not in card
+    md = result["md"]["groups"]["aug"]
+    assert f"(members 0, 1 of 3 so far): {md['runs']} runs" in card
+    if result["ir"]["n_molecules"]:
+        assert "over the 1 of 2 test molecules with a DFT Hessian so far" in card
+
+
 def test_dft_plan_finishes_the_figure_molecules_then_polarizabilities_then_hessians():
     mod = study_module()
     rows = [{"name": n} for n in ("a", "fig2", "b", "fig1")]
