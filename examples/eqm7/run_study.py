@@ -1625,6 +1625,10 @@ def model_card(result: dict, name: str, group: str, n_models: int,
     runs = [(result.get("training") or {}).get(name) for name in members]
     done = sorted({(run["epochs"], run["n_train"]) for run in runs if run})
     epochs = "".join(f"{e} epochs over {n} training configurations; " for e, n in done)
+    if cfg.get("steps"):
+        epochs += (f"{int(cfg['steps'])} optimizer steps, the learning rate halved every"
+                   f" {int(cfg.get('decay_steps') or cfg['steps'])}; ")
+    overrides = ", ".join(f"`{o}`" for o in model_overrides(cfg, group, "{seed}"))
     lines = [
         f"# {name}: an eMLP ensemble trained on mini-eQM7", "",
         f"Status: **{result['status']}** (generated {result['generated']} by"
@@ -1662,8 +1666,8 @@ def model_card(result: dict, name: str, group: str, n_models: int,
         " 800 K, torsions and dimers with CH4/NH3/H2O as in the paper.", "",
         "## Models", "",
         f"{n_models} {GROUP_LABEL[group]} models (seeds {', '.join(seeds)};"
-        f" {epochs}training config `examples/eqm7/train.yaml` with overrides"
-        f" {', '.join(f'`{o}`' for o in model_overrides(cfg, group, '{seed}')) or 'none'}),"
+        f" {epochs}training config `examples/eqm7/train.yaml`"
+        f"{' with overrides ' + overrides if overrides else ''}),"
         " weights stored in float32."
         " With several members the calculator and every command report the mean and the"
         " spread (`energy_std`, `forces_std`, `dipole_std`, ...) and warn when the spread is"
