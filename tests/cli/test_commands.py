@@ -483,6 +483,10 @@ def test_train_threads_flag_overrides_the_config(tmp_path, monkeypatch):
 
     monkeypatch.setattr(trainer, "train", fake_train)
     rc, _, err = run(["train", str(ROOT / "configs" / "small_cpu.yaml"), "training.threads=2",
-                      "--threads", "1"])
+                      "--threads", "1", "--device", "cpu"])
     assert rc == 0, err
-    assert seen["threads"] == 1
+    assert seen["threads"] == 1 and seen["device"] == "cpu"
+    monkeypatch.setattr("torch.cuda.is_available", lambda: False)
+    rc, out, err = run(["train", str(ROOT / "configs" / "small_cpu.yaml"), "--device", "cuda"])
+    assert rc != 0 and "training.device=cuda: PyTorch sees no CUDA GPU" in err + out
+    assert "Traceback" not in err

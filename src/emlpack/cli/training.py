@@ -48,6 +48,8 @@ def add_train(sub: Subparsers) -> None:
     p.add_argument("--seeds", type=int, nargs="+", help="train an ensemble, one model per seed")
     p.add_argument("--restart", action="store_true",
                    help="start afresh instead of resuming from <output.dir>/last.pt")
+    p.add_argument("--device", help="auto, cpu, cuda or cuda:N (default: the config's"
+                   " training.device, auto: a CUDA GPU when PyTorch sees one)")
 
     def run(args: argparse.Namespace):
         from emlpack.data.dataset import DataError
@@ -59,6 +61,8 @@ def add_train(sub: Subparsers) -> None:
         overrides = list(args.overrides)
         if args.threads is not None:  # --threads wins over the config's training.threads
             overrides.append(f"training.threads={args.threads}")
+        if args.device is not None:  # so does --device over training.device
+            overrides.append(f"training.device={args.device}")
         try:
             cfg = load_config(args.config, overrides)
             if args.seeds:
