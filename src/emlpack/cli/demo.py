@@ -281,8 +281,8 @@ def _against_dft(pol: dict, ir: dict, reference: Path) -> list[str]:
         return []
     lines = [f"DFT (PBE0/aug-cc-pVTZ, `{PRETRAINED_REFERENCE}`): " + "; ".join(parts) + "."]
     if ratio is not None and not 0.8 < ratio < 1.2:
-        lines.append("The polarizability is off by more than 20 %: see 'Its polarizabilities'"
-                     " in docs/pretrained.md.")
+        lines.append("The polarizability is off by more than 20 %: its electron pairs are too"
+                     " soft, see 'The mini-eqm7 ensemble' in docs/pretrained.md.")
     return lines
 
 
