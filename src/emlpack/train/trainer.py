@@ -482,8 +482,9 @@ class Trainer:
         final = root / f"step-{self._saved_step:09d}"  # the step of last.pt
         # only the older ones go: a newer snapshot came from elsewhere (another machine went
         # further, e.g. a GPU) and is what the next start of this run should take
-        older = [p for p in self._snapshots() if _snapshot_step(p) < self._saved_step]
-        newer = [p.name for p in self._snapshots() if _snapshot_step(p) > self._saved_step]
+        snaps = self._snapshots()
+        older = [p for p in snaps if _snapshot_step(p) < self._saved_step]
+        newer = [p.name for p in snaps if _snapshot_step(p) > self._saved_step]
         if newer:
             log.warning("%s holds newer snapshots than this run's step %d (%s): kept; the"
                         " run resumes from the newest when started again", root,
