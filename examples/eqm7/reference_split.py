@@ -6,7 +6,8 @@ the vibrational directions, less the displacement files already in ``NAME/vib-in
 ``n_bf ** 2.5``, ``n_bf`` its aug-cc-pVTZ basis functions (23 per H, 46 per C, N, O), from its
 committed static reference ``NAME.json``; a molecule without one counts as the largest known.
 Of all ``2 ** n`` splits (at most 15 test molecules) the most even is taken; each half keeps
-the given order.
+the given order (the dft stage computes each half's Hessians cheapest first by the same cost:
+``run_study.dft_plan``).
 
 Usage (from the project root)::
 

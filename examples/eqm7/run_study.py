@@ -677,23 +677,29 @@ def dft_vibrations(study: Study, static: dict, labeler) -> dict:
     }
 
 
-def dft_plan(rows: list[dict], figure: list[str],
-             static_only: list[dict] = ()) -> list[tuple[dict, str]]:
+def dft_plan(rows: list[dict], figure: list[str], static_only: list[dict] = (),
+             ir_cost: Callable[[str], float | None] | None = None) -> list[tuple[dict, str]]:
     """(molecule, part) in the order the dft stage computes them: the IR figure's molecules
     completely, then every other molecule's ``static`` reference, then those of
     ``static_only`` (the second test set's: polarizabilities, no Hessian), then the ``ir``
-    ones (hours each)."""
+    ones (hours each), cheapest first by ``ir_cost(name)`` when given (None: unknown, last),
+    so that the IR frequency MAE covers the most test molecules soonest."""
     first = [r for r in rows if r["name"] in figure]
     rest = [r for r in rows if r["name"] not in figure]
+    hessians = rest
+    if ir_cost is not None:
+        costs = {r["name"]: ir_cost(r["name"]) for r in rest}
+        hessians = sorted(rest, key=lambda r: (costs[r["name"]] is None, costs[r["name"]] or 0))
     return ([(r, part) for r in first for part in ("static", "ir")]
-            + [(r, "static") for r in [*rest, *static_only]] + [(r, "ir") for r in rest])
+            + [(r, "static") for r in [*rest, *static_only]] + [(r, "ir") for r in hessians])
 
 
 def stage_dft(study: Study) -> dict:
     """The DFT references in the order that gives results soonest (``dft_plan``): the IR
     figure's molecules completely (``NAME.json`` then ``NAME.ir.json``), then every other test
     molecule's static reference (polarizabilities), then the second test set's, then the test
-    molecules' Hessians (hours each)."""
+    molecules' Hessians (hours each), cheapest first (``reference_split.reference_cost``: force
+    calls left x basis functions^2.5)."""
     from emlpack.qm.pyscf_labeler import PySCFLabeler
 
     d = study.cfg.get("dft", {})
@@ -706,7 +712,13 @@ def stage_dft(study: Study) -> dict:
                            keep_heap=bool(d.get("keep_heap", False)))
     figure = study.cfg.get("ir", {}).get("figure_molecules", list(IR_MOLECULES))
     out: dict = {}
-    for row, part in dft_plan(study.test_molecules(), figure, study.second_set_molecules()):
+    if str(HERE) not in sys.path:
+        sys.path.insert(0, str(HERE))
+    from reference_split import reference_cost  # the Hessian's cost: calls left x basis^2.5
+
+    plan = dft_plan(study.test_molecules(), figure, study.second_set_molecules(),
+                    ir_cost=lambda name: reference_cost(study.dft_dir, name))
+    for row, part in plan:
         name = row["name"]
         target = study.dft_dir / (f"{name}.json" if part == "static" else f"{name}.ir.json")
         failed = study.dft_dir / f"{name}.failed.json"

@@ -237,6 +237,13 @@ def test_dft_plan_finishes_the_figure_molecules_then_polarizabilities_then_hessi
     plan = [(r["name"], part) for r, part in mod.dft_plan(rows, ["fig1", "fig2"], [{"name": "c"}])]
     assert plan[4:] == [("a", "static"), ("b", "static"), ("c", "static"), ("a", "ir"),
                         ("b", "ir")]
+    # the Hessians cheapest first (the IR MAE covers the most molecules soonest); an unknown
+    # cost (no static reference yet) last
+    rows = [{"name": n} for n in ("a", "b", "c", "d", "fig1")]
+    cost = {"a": 5.0, "b": None, "c": 1.0, "d": 3.0}
+    plan = [(r["name"], part) for r, part in mod.dft_plan(rows, ["fig1"], ir_cost=cost.get)]
+    assert plan[2:] == [("a", "static"), ("b", "static"), ("c", "static"), ("d", "static"),
+                        ("c", "ir"), ("d", "ir"), ("a", "ir"), ("b", "ir")]
 
 
 def test_groups_restrict_training_to_the_chosen_group(study_run):
