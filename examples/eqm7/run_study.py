@@ -1645,16 +1645,23 @@ def model_card(result: dict, name: str, group: str, n_models: int,
         f"# {name}: an eMLP ensemble trained on mini-eQM7", "",
         f"Status: **{result['status']}** (generated {result['generated']} by"
         " `examples/eqm7/run_study.py export`).", ""]
+    n_ir = (result.get("ir") or {}).get("n_molecules") or 0
+    md_ran = sorted({r["model"] for r in (result.get("md") or {}).get("runs", [])
+                     if r.get("group") == group})
     if result["status"] != "final" and d.get("complete"):
+        remaining = ["the non-augmented models"]
+        if len(md_ran) < n_models:
+            remaining.append("every member's MD")
+        if n_ir < by["test"]["molecules"]:
+            remaining.append("the IR frequencies of every test molecule")
         lines += [
             f"**Study in progress.** Trained on the complete data set ({d['configurations']}"
             " configurations, the campaign's target), with a small architecture trained on 2"
             " CPU cores; its errors below are several times the paper's (the paper trained on"
             " 3.4 million configurations), so check what matters with DFT and watch the"
-            " ensemble spread and the warnings. The study's remaining results (the"
-            " non-augmented models, every member's MD, the IR frequencies of every test"
-            " molecule) are still being computed: the lines below give what is measured so"
-            " far, and say on how much.", ""]
+            " ensemble spread and the warnings. The study's remaining results"
+            f" ({', '.join(remaining)}) are still being computed: the lines below give what is"
+            " measured so far, and say on how much.", ""]
     elif result["status"] != "final":
         lines += [
             f"**Preliminary.** Trained on the {d['configurations']} configurations labeled so"
@@ -1713,16 +1720,13 @@ def model_card(result: dict, name: str, group: str, n_models: int,
     else:
         lines.append("*Not evaluated.*")
     if ir:
-        n_ir = (result.get("ir") or {}).get("n_molecules")
         over = (f" over the {n_ir} of {by['test']['molecules']} test molecules with a DFT"
                 " Hessian so far" if n_ir and n_ir < by["test"]["molecules"] else "")
         lines.append(f"Harmonic IR frequencies: MAE {_ms(ir['frequency_mae'], 1, 1)} cm⁻¹"
                      f" against PBE0/aug-cc-pVTZ{over} (modes in ascending order).")
     if md:
-        ran = sorted({r["model"] for r in (result.get("md") or {}).get("runs", [])
-                      if r.get("group") == group})
-        of = (f" (members {', '.join(m.removeprefix(f'{group}-s') for m in ran)} of"
-              f" {n_models} so far)" if 0 < len(ran) < n_models else "")
+        of = (f" (members {', '.join(m.removeprefix(f'{group}-s') for m in md_ran)} of"
+              f" {n_models} so far)" if 0 < len(md_ran) < n_models else "")
         lines.append(f"MD (500 fs NVT at 300 K){of}: {md['runs']} runs, {md['stable']} stable,"
                      f" {md['transition']} transition, {md['unstable']} unstable,"
                      f" {md['bonding_changed']} with bonding changed.")
