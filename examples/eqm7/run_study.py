@@ -1101,15 +1101,20 @@ def stage_md(study: Study) -> None:
         # among the runs whose trajectory is here (study_outputs.py restores analyses only)
         from emlpack.dynamics.analysis import plot_conserved_series
 
+        # (whole 500 fs runs first: one the watchdog stopped shows only its start); the legend
+        # gives the study's class (a stopped run is unstable whatever its trajectory shows)
         examples = {}
-        for r in summary["analyses"]:
+        for r in sorted(summary["analyses"], key=lambda r: bool(r["stopped"])):
             if (study.workdir / "md" / r["model"] / r["molecule"] / "trajectory.xyz").exists():
                 examples.setdefault(r["classification"], r)
         paths = [study.workdir / "md" / r["model"] / r["molecule"] for r in examples.values()]
         if paths:
-            plot_conserved_series(paths, study.workdir / "figure3_series.png",
-                                  labels=[f"{r['model']}/{r['molecule']}"
-                                          for r in examples.values()], discard_steps=discard)
+            plot_conserved_series(
+                paths, study.workdir / "figure3_series.png",
+                labels=[f"{r['model']}/{r['molecule']}" for r in examples.values()],
+                discard_steps=discard,
+                classes=[r["classification"] + (" (stopped by the watchdog)" if r["stopped"]
+                                                else "") for r in examples.values()])
 
 
 def md_summary(study: Study) -> dict | None:
@@ -1311,11 +1316,38 @@ def stage_table(study: Study, out_dir: Path | None = None) -> dict:
         result["evaluation"]["pbe0_subset_note"] = (
             f"{second}: not found or not evaluated; the second test set was skipped")
     result["targets"] = targets(result)
+    result["figures"] = copy_figures(study.workdir, out_dir)
     _write_json(out_dir / "results.json", result)
     _write_text(out_dir / "results.md", markdown(result, study.cfg.get("notes", "")))
     study.work["table"] += 1
     study.log(f"table: {out_dir / 'results.md'}")
     return result
+
+
+#: the figures the ir and md stages draw in the work directory
+FIGURES = ("figure4_ir.png", "figure3_md.png", "figure3_series.png")
+
+
+def copy_figures(workdir: Path, out_dir: Path) -> list[str]:
+    """Copy the figures found in ``workdir`` (``FIGURES``) beside ``results.md`` in
+    ``out_dir`` (each through a temporary file and a rename); their names, for the markdown."""
+    from emlpack._files import write_bytes_atomic
+
+    names = []
+    for name in FIGURES:
+        source = workdir / name
+        if not source.exists():
+            continue
+        if source.resolve() != (out_dir / name).resolve():
+            out_dir.mkdir(parents=True, exist_ok=True)
+            write_bytes_atomic(out_dir / name, source.read_bytes())
+        names.append(name)
+    return names
+
+
+def _figure_md(result: dict, names: tuple[str, ...]) -> list[str]:
+    """Markdown images of those of ``names`` that ``stage_table`` copied beside results.md."""
+    return [f"![{n}]({n})" for n in names if n in result.get("figures", ())]
 
 
 def _static_md(ev: dict, title: str) -> list[str]:
@@ -1438,8 +1470,8 @@ def markdown(result: dict, notes: str = "") -> str:
                   " ascending order), mean (± std) over models: "
                   + ", ".join(f"{GROUP_LABEL[g]} {_ms(v['frequency_mae'], 1, 1)} cm⁻¹"
                               for g, v in ir["groups"].items())
-                  + f"; paper ~{PAPER['ir']['frequency_mae_cm-1']:g} cm⁻¹."
-                  " Figure: `figure4_ir.png` in the work directory.", ""]
+                  + f"; paper ~{PAPER['ir']['frequency_mae_cm-1']:g} cm⁻¹.", ""]
+        lines += [*_figure_md(result, ("figure4_ir.png",)), ""]
     else:
         lines += ["*not computed yet (dft and ir stages).*", ""]
     md = result["md"]
@@ -1453,8 +1485,9 @@ def markdown(result: dict, notes: str = "") -> str:
                          f" {_val(v['max_jump_max'], 5)} |")
         lines += ["", f"Paper: {PAPER['md']['noaug_unstable_pct']} % of the non-augmented runs"
                   " unstable, none of the augmented ones (the paper does not check bonding)."
-                  " Figures: `figure3_md.png` (panel a) and `figure3_series.png` (panels b, c:"
-                  " one run of each class) in the work directory.", ""]
+                  " Panel a: slope against largest jump of every run; panels b, c: the"
+                  " conserved quantity of one run of each class.", ""]
+        lines += [*_figure_md(result, ("figure3_md.png", "figure3_series.png")), ""]
     else:
         lines += ["*not run yet (md stage).*", ""]
     lines += differences_md(result)

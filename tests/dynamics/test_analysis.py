@@ -191,6 +191,28 @@ def test_trajectory_file_analysis_plot_and_cli(tmp_path):
     assert not list(tmp_path.glob(".*.tmp"))  # atomic writes leave no temporary files
 
 
+def test_series_legend_gives_the_trajectory_class_or_the_callers(tmp_path, monkeypatch):
+    """Panels (b)/(c): each run's class in the legend is its trajectory's, unless the caller
+    gives its own (the eqm7 study counts a run the MD watchdog stopped as unstable)."""
+    from emlpack.dynamics import analysis
+
+    path = tmp_path / "run.xyz"
+    t, e, steps = _series(n_frames=30, slope=1e-6, jump=3e-3, jump_at=20, n_atoms=3)
+    write_structures(path, _water_frames(t, e, steps))
+    legends = []
+
+    def capture(png_path, figure, dpi=120):
+        legends.append([x.get_text() for x in figure.axes[0].get_legend().get_texts()])
+
+    monkeypatch.setattr(analysis, "write_figure_atomic", capture)
+    analysis.plot_conserved_series([path], tmp_path / "e.png", labels=["w"])
+    analysis.plot_conserved_series([path], tmp_path / "e.png", labels=["w"],
+                                   classes=["unstable (stopped)"])
+    jump = f"{analyze_trajectory(path).max_jump:.1e}"
+    assert legends == [[f"w: transition, max jump {jump}"],
+                       [f"w: unstable (stopped), max jump {jump}"]]
+
+
 def test_trajectory_errors_name_file_and_frame(tmp_path):
     t, e, steps = _series(n_frames=30)
     frames = _water_frames(t, e, steps)

@@ -95,6 +95,10 @@ def test_every_stage_writes_its_outputs(study_run):
     assert (work / "figure4_ir.png").stat().st_size > 1000
     assert (root / "results" / "results.json").exists()
     md = (root / "results" / "results.md").read_text()
+    # the figures beside results.md (committed with it), shown in it
+    for name in ("figure3_md.png", "figure3_series.png", "figure4_ir.png"):
+        assert (root / "results" / name).read_bytes() == (work / name).read_bytes()
+        assert f"![{name}]({name})" in md
     assert "Table 2" in md and "Table 3" in md and "Targets of issue 15" in md
     assert "4.45 (± 0.11)" in md  # the paper's numbers beside ours
     assert md.count("molecules with a DFT reference") == 2  # both sets' polarizabilities

@@ -358,9 +358,12 @@ def plot_conserved_series(
     png_path: str | os.PathLike,
     labels: Sequence[str] | None = None,
     discard_steps: int = DISCARD_STEPS,
+    classes: Sequence[str] | None = None,
 ) -> None:
     """The paper's panels (b)/(c): ``E_cons(t) - E_cons(t_first)`` (eV per atom) of each
-    trajectory after the discard, with its fitted line; PNG written atomically."""
+    trajectory after the discard, with its fitted line; PNG written atomically. The legend
+    gives each run's class: ``classes[k]`` when given (a study that counts a run stopped by
+    the MD watchdog as unstable passes its own), else the trajectory's (``analyze_conserved``)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -375,7 +378,8 @@ def plot_conserved_series(
         t, e = times[keep], energies[keep] / n_atoms
         label = labels[k] if labels else Path(r.source).parent.name or Path(r.source).stem
         ax.plot(t, e - e[0], color=f"C{k}", lw=1,
-                label=f"{label}: {r.classification}, max jump {r.max_jump:.1e}")
+                label=f"{label}: {classes[k] if classes else r.classification},"
+                      f" max jump {r.max_jump:.1e}")
         ax.plot(t, r.intercept - e[0] + r.slope * (t - t[0]), color=f"C{k}", ls=":", lw=1)
     ax.set_xlabel("time (fs)")
     ax.set_ylabel(r"$E_\mathrm{cons}(t) - E_\mathrm{cons}(t_0)$ (eV per atom)")
