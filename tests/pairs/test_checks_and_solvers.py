@@ -3,6 +3,8 @@ solvers behind one interface (the warm-start solver's core forces are the model'
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -184,3 +186,29 @@ def test_exact_blocks_equal_autograd_and_the_forward_differences():
     ref_pp, ref_cp = _hessian_columns(energy_gradient_function(toy, w)[0], w.pairs, w.n_cores)
     np.testing.assert_array_equal(toy_pp, ref_pp)
     np.testing.assert_array_equal(toy_cp, ref_cp)
+
+
+def test_floored_step_of_an_ill_conditioned_indefinite_model():
+    """The warm-start step ``H^-1 g`` with H's eigenvalues floored, on the carried model of a
+    real MD step where two pairs had merged (eqm7 study, a non-augmented model: curvatures of
+    4e17 eV/Å^2 beside negative ones of -94). There a Cholesky factorisation can pass for an
+    indefinite H (rounding), and the old fallback raised LinAlgError out of the MD: the step
+    must be the eigendecomposition's. A well-conditioned positive definite model keeps the
+    plain Newton step; a non-finite one is a failed relaxation."""
+    from ase.calculators.calculator import CalculationFailed
+
+    from emlpack.pairs.solvers import _CURVATURE_FLOOR, _floored_solve
+
+    data = np.load(Path(__file__).parent / "fixtures" / "merging_pairs_model_hessian.npz")
+    h, g = data["h"], data["g"]
+    w, v = np.linalg.eigh(h)
+    assert w[0] < -90 and w[-1] > 1e17
+    floored = v @ ((v.T @ g) / np.maximum(w, _CURVATURE_FLOOR))
+    np.testing.assert_allclose(_floored_solve(h, g), floored, rtol=0, atol=1e-12)
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(12, 12))
+    spd = a @ a.T + 12 * np.eye(12)
+    b = rng.normal(size=12)
+    np.testing.assert_allclose(_floored_solve(spd, b), np.linalg.solve(spd, b), rtol=1e-12)
+    with pytest.raises(CalculationFailed, match="non-finite"):
+        _floored_solve(np.where(np.eye(12) > 0, np.nan, spd), b)
