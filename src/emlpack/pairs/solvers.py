@@ -72,8 +72,8 @@ _CURVATURE_FLOOR = 1e-2
 #: the condition number (estimated from the Cholesky factor's diagonal) beyond which
 #: ``_floored_solve`` does not trust a Cholesky factorisation to tell a positive definite
 #: model from an indefinite one (rounding of 1e17 eV/Å^2 curvatures swamps eigenvalues of
-#: tens of eV/Å^2); 2.3e2-4.8e2 at most in 200 MD steps of aziridine, butanenitrile and
-#: 3-(methylamino)but-2-enal with mini-eqm7, 1e16 where a noaug-s1 MD run had merged two pairs
+#: tens of eV/Å^2); at most 2.3e2 and 4.8e2 in 200 MD steps of 3-(methylamino)but-2-enal and
+#: butanenitrile with mini-eqm7, 1e16 where a noaug-s1 MD run had merged two pairs
 _CHOLESKY_MAX_CONDITION = 1e12
 #: a measured relative model error above this replaces the carried models by exact blocks
 #: at the next call (measured on hexane with the trained benchmark model: 0.01-0.25)
@@ -604,13 +604,14 @@ def _floored_solve(h: np.ndarray, g: np.ndarray) -> np.ndarray:
     if not (np.all(np.isfinite(h)) and np.all(np.isfinite(g))):
         raise CalculationFailed("non-finite pair Hessian model or gradient in the relaxation")
     factor, info = _potrf(h - _CURVATURE_FLOOR * np.eye(len(g)), lower=False, clean=False)
-    r = np.abs(np.diag(factor))
-    if info == 0 and r.min() ** 2 > r.max() ** 2 / _CHOLESKY_MAX_CONDITION:
-        factor, info = _potrf(h, lower=False, clean=False)
-        if info == 0:
-            x, info = _potrs(factor, g, lower=False)
+    if info == 0:
+        r = np.abs(np.diag(factor))
+        if r.min() ** 2 * _CHOLESKY_MAX_CONDITION > r.max() ** 2:
+            factor, info = _potrf(h, lower=False, clean=False)
             if info == 0:
-                return x
+                x, info = _potrs(factor, g, lower=False)
+                if info == 0:
+                    return x
     w, v = np.linalg.eigh(h)
     return v @ ((v.T @ g) / np.maximum(w, _CURVATURE_FLOOR))
 
