@@ -18,9 +18,11 @@
 # Phase 2b starts when all 8 models have finished: run_study.py evaluate polarizability md
 # table (results in runs/eqm7/results, not committed: a session reviews them) in one process,
 # beside the references.
-# Phase 3 starts when that has ended. The references still to compute are split between two
-# processes, one per core, balanced by their force calls still to do and the size of each call
-# (reference_split.py); the 10x non-augmented model (stopped in phase 2) goes on at nice 10.
+# Phase 3 starts when that has ended (also when it failed: the watcher logs it, `status` shows
+# the exit status, and the next start reruns phase 2b from its saved outputs). The references
+# still to compute are split between two processes, one per core, balanced by their force calls
+# still to do and the size of each call (reference_split.py); the 10x non-augmented model
+# (stopped in phase 2) goes on at nice 10.
 # Phase 4 starts when every harmonic reference is finished: run_study.py ir table (Figure 4,
 # the frequency MAE; results in runs/eqm7/results). A session then reviews the results and runs
 # `table export status=final` itself.
@@ -178,6 +180,7 @@ start_study() {  # start_study JOB STAGE ...: run_study.py stages on the final m
   local job=$1
   shift
   running "$job" && return 0
+  rm -f "$PIDS/$job.rc"
   code_copy "$job"
   PYTHONPATH=/tmp/emlp-$job/src "$PY" examples/eqm7/study_outputs.py restore "$OUTPUTS" "$WORK"
   (
@@ -196,6 +199,10 @@ start_study() {  # start_study JOB STAGE ...: run_study.py stages on the final m
       done
       save
     done
+    rc=0
+    wait "$stage" || rc=$?
+    echo "$rc" > "$PIDS/$job.rc"  # the stages' exit status, for the watcher and status
+    echo "[$(date +%T)] $job: the stages ended with exit status $rc"
   ) >> "runs/$job.log" 2>&1 &
   echo $! > "$PIDS/$job.pid"
   echo "$job ($*): PID $!, log runs/$job.log, results in $WORK/results"
@@ -220,6 +227,11 @@ watch() {  # phase 1 -> 2 -> 2b -> 3 -> 4 as the jobs end
   final_trained || return 0  # a training stopped short: a session looks
   start_study study-eval evaluate polarizability md table  # phase 2b: no Hessian needed
   while running study-eval; do sleep 60; done
+  if [ "$(cat "$PIDS/study-eval.rc" 2>/dev/null)" != 0 ]; then  # phase 3 goes on all the same:
+    # the next start reruns phase 2b from its saved outputs; status shows the failure
+    echo "[$(date +%T)] phase 2b failed (exit status $(cat "$PIDS/study-eval.rc" 2>/dev/null \
+      || echo unknown)): see runs/study-eval.log; phase 3 starts, the next start reruns 2b"
+  fi
   split_references
   start_noaug_10x  # the rest of its steps at nice 10, from what the references leave
   while running references-a || running references-b; do sleep 60; done
@@ -255,7 +267,14 @@ case "${1:-start}" in
     ;;
   status)
     for job in campaign references references-a references-b noaug-10x final-0 final-1 study-eval study-ir watcher; do
-      if running "$job"; then echo "$job: running (PID $(cat "$PIDS/$job.pid"))"; else echo "$job: -"; fi
+      if running "$job"; then
+        echo "$job: running (PID $(cat "$PIDS/$job.pid"))"
+      elif [ -f "$PIDS/$job.rc" ]; then  # the study stages' jobs: how they ended
+        echo "$job: ended with exit status $(cat "$PIDS/$job.rc")$([ "$(cat "$PIDS/$job.rc")" = 0 ] \
+          || echo " (FAILED: see runs/$job.log)")"
+      else
+        echo "$job: -"
+      fi
     done
     PYTHONPATH=src "$PY" -c "
 from emlpack.qm.campaign import campaign_target
