@@ -1682,19 +1682,22 @@ def model_card(result: dict, name: str, group: str, n_models: int,
     md_ran = sorted({r["model"] for r in (result.get("md") or {}).get("runs", [])
                      if r.get("group") == group})
     if result["status"] != "final" and d.get("complete"):
-        remaining = ["the non-augmented models"]
+        remaining = []  # what the card's lines still wait for (the non-augmented models
+        # are the study's comparison, not a line of this card)
         if len(md_ran) < n_models:
             remaining.append("every member's MD")
         if n_ir < by["test"]["molecules"]:
             remaining.append("the IR frequencies of every test molecule")
+        pending = (f" The study's remaining results ({', '.join(remaining)}) are still being"
+                   " computed: the lines below give what is measured so far, and say on how"
+                   " much." if remaining else
+                   " The study's final export replaces this card once its tables are reviewed.")
         lines += [
             f"**Study in progress.** Trained on the complete data set ({d['configurations']}"
             " configurations, the campaign's target), with a small architecture trained on 2"
             " CPU cores; its errors below are several times the paper's (the paper trained on"
             " 3.4 million configurations), so check what matters with DFT and watch the"
-            " ensemble spread and the warnings. The study's remaining results"
-            f" ({', '.join(remaining)}) are still being computed: the lines below give what is"
-            " measured so far, and say on how much.", ""]
+            " ensemble spread and the warnings." + pending, ""]
     elif result["status"] != "final":
         lines += [
             f"**Preliminary.** Trained on the {d['configurations']} configurations labeled so"

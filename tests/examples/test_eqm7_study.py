@@ -229,12 +229,13 @@ def test_models_on_the_complete_data_set_carry_no_notice_and_say_what_is_pending
     assert f"(members 0, 1 of 3 so far): {md['runs']} runs" in card
     if result["ir"]["n_molecules"]:
         assert "over the 1 of 2 test molecules with a DFT Hessian so far" in card
-    assert ("(the non-augmented models, every member's MD, the IR frequencies of every test"
-            " molecule) are still being computed") in card
+    assert ("(every member's MD, the IR frequencies of every test molecule) are still being"
+            " computed") in card
     # every member's MD and every molecule's Hessian finished: the card no longer lists them
     result["ir"]["n_molecules"] = 2
     card = mod.model_card(result, "mini-eqm7", "aug", 2)
-    assert "(the non-augmented models) are still being computed" in card
+    assert "still being computed" not in card
+    assert "The study's final export replaces this card" in card
     assert "so far)" not in card and "with a DFT Hessian so far" not in card
 
 
