@@ -50,7 +50,6 @@ import copy
 import csv
 import datetime as dt
 import json
-import os
 import sys
 import time
 from collections import Counter
@@ -912,9 +911,6 @@ def stage_ir(study: Study) -> None:
         return out
 
     _at_dft_optima(study, "ir", row)
-    summary = ir_summary(study)
-    if summary and (study.work["ir"] or not (study.workdir / "figure4_ir.png").exists()):
-        figure4(study, summary)
 
 
 def _freq_mae(a, b) -> float | None:
@@ -949,12 +945,16 @@ def ir_summary(study: Study) -> dict | None:
     return out
 
 
-def figure4(study: Study, summary: dict) -> Path | None:
+def figure4(study: Study, out_dir: Path) -> list[str]:
+    """Figure 4 (``out_dir/figure4_ir.png``): the harmonic IR spectra of the figure's
+    molecules, DFT against the mean spectrum of each group of the study's models; the curves'
+    labels (none drawn: no DFT Hessian of those molecules yet)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from emlpack._files import write_figure_atomic
     from emlpack.properties.ir import lorentzian
 
     c = study.cfg.get("ir", {})
@@ -964,15 +964,17 @@ def figure4(study: Study, summary: dict) -> Path | None:
     if not mols:
         mols = list(refs)[:2]
     if not mols:
-        return None
+        return []
     per_model = {name: _read_json(study.workdir / "ir" / f"{name}.json")
                  for _, name, _ in study.models()}
     grid = np.arange(0.0, 4000.0, 1.0)
+    labels: list[str] = []
     fig, axes = plt.subplots(1, len(mols), figsize=(6.5 * len(mols), 4.2), squeeze=False)
     for ax, mol in zip(axes[0], mols, strict=True):
         ref = refs[mol]
         ax.plot(grid, lorentzian(grid, ref["frequencies_cm-1"], ref["intensities_km_per_mol"],
                                  fwhm), "k", lw=1.2, label=f"DFT ({ref['level']})")
+        labels.append(f"{mol}: DFT ({ref['level']})")
         for k, (group, colour) in enumerate((("aug", "C2"), ("noaug", "C3"))):
             curves = [lorentzian(grid, r["molecules"][mol]["frequencies"],
                                  r["molecules"][mol]["intensities"], fwhm)
@@ -980,20 +982,19 @@ def figure4(study: Study, summary: dict) -> Path | None:
                       if r and name.startswith(group + "-") and "frequencies"
                       in r["molecules"].get(mol, {})]
             if curves:
+                label = f"eMLP {GROUP_LABEL[group]} (mean of {len(curves)})"
                 ax.plot(grid, np.mean(curves, axis=0), color=colour, lw=1.0,
-                        ls="-" if k == 0 else "--",
-                        label=f"eMLP {GROUP_LABEL[group]} (mean of {len(curves)})")
+                        ls="-" if k == 0 else "--", label=label)
+                labels.append(f"{mol}: {label}")
         ax.set_title(f"{IR_MOLECULES.get(mol, mol)} ({mol})")
         ax.set_xlabel("wavenumber (cm$^{-1}$)")
         ax.set_ylabel(f"absorbance (km/mol/cm$^{{-1}}$, FWHM {fwhm:g} cm$^{{-1}}$)")
         ax.legend(fontsize=8)
     fig.tight_layout()
-    path = study.workdir / "figure4_ir.png"
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.png")
-    fig.savefig(tmp, dpi=110)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_figure_atomic(out_dir / "figure4_ir.png", fig, dpi=110)
     plt.close(fig)
-    os.replace(tmp, path)
-    return path
+    return labels
 
 
 # ---------------------------------------------------------------------- md
@@ -1073,48 +1074,59 @@ def stage_md(study: Study) -> None:
             study.log(f"md: {name}/{row['name']}: {out['classification']}"
                       + (f", bonding changed ({changes[0]})" if changes else "")
                       + (f", stopped: {stopped}" if stopped else ""))
-    summary = md_summary(study)
-    figure = study.workdir / "figure3_md.png"
-    if summary and summary["analyses"] and (study.work["md"] or not figure.exists()):
-        from emlpack.dynamics.analysis import ConservedAnalysis, plot_conserved
 
-        runs, labels, groups = [], [], []
-        for r in summary["analyses"]:
-            a = r["analysis"]
-            runs.append(ConservedAnalysis(
-                source=r["model"] + "/" + r["molecule"], n_atoms=a["n_atoms"],
-                n_frames=a["n_frames"], n_discarded=a["n_discarded"],
-                first_step=a["first_step"], last_step=a["last_step"],
-                stride_steps=a["stride_steps"], duration=a["duration_fs"],
-                slope=a["slope_eV_per_fs_per_atom"], intercept=a["intercept_eV_per_atom"],
-                max_jump=a["max_jump_eV_per_atom"], max_jump_step=a["max_jump_step"],
-                residual_std=a["residual_std_eV_per_atom"], drift=a["drift_eV_per_atom"],
-                classification=a["classification"]))
-            labels.append("")
-            groups.append(GROUP_LABEL[r["group"]])
-        counts = summary["groups"]
-        title = "; ".join(f"{GROUP_LABEL[g]}: {v['stable']}/{v['transition']}/{v['unstable']}"
-                          for g, v in counts.items()) + " (stable/transition/unstable)"
-        plot_conserved(runs, figure, labels=labels, groups=groups,
-                       title=title)
-        # panels (b) and (c): one run of each class present (stable, transition, unstable)
-        # among the runs whose trajectory is here (study_outputs.py restores analyses only)
-        from emlpack.dynamics.analysis import plot_conserved_series
 
-        # (whole 500 fs runs first: one the watchdog stopped shows only its start); the legend
-        # gives the study's class (a stopped run is unstable whatever its trajectory shows)
-        examples = {}
-        for r in sorted(summary["analyses"], key=lambda r: bool(r["stopped"])):
-            if (study.workdir / "md" / r["model"] / r["molecule"] / "trajectory.xyz").exists():
-                examples.setdefault(r["classification"], r)
-        paths = [study.workdir / "md" / r["model"] / r["molecule"] for r in examples.values()]
-        if paths:
-            plot_conserved_series(
-                paths, study.workdir / "figure3_series.png",
-                labels=[f"{r['model']}/{r['molecule']}" for r in examples.values()],
-                discard_steps=discard,
-                classes=[r["classification"] + (" (stopped by the watchdog)" if r["stopped"]
-                                                else "") for r in examples.values()])
+def figure3(study: Study, summary: dict, out_dir: Path) -> dict[str, list[str]]:
+    """Figure 3 of the runs in ``summary`` (:func:`md_summary`, with its analyses):
+    ``out_dir/figure3_md.png`` (panel a: slope against largest jump of every run, coloured by
+    group) and ``figure3_series.png`` (panels b, c: the conserved quantity of one run of each
+    class, among the runs whose trajectory is in the work directory). Returns each file's
+    groups or runs shown."""
+    from emlpack.dynamics.analysis import (
+        ConservedAnalysis,
+        plot_conserved,
+        plot_conserved_series,
+    )
+
+    if not summary["analyses"]:
+        return {}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    discard = int(study.cfg.get("md", {}).get("discard_steps", 10))
+    runs, groups = [], []
+    for r in summary["analyses"]:
+        a = r["analysis"]
+        runs.append(ConservedAnalysis(
+            source=r["model"] + "/" + r["molecule"], n_atoms=a["n_atoms"],
+            n_frames=a["n_frames"], n_discarded=a["n_discarded"],
+            first_step=a["first_step"], last_step=a["last_step"],
+            stride_steps=a["stride_steps"], duration=a["duration_fs"],
+            slope=a["slope_eV_per_fs_per_atom"], intercept=a["intercept_eV_per_atom"],
+            max_jump=a["max_jump_eV_per_atom"], max_jump_step=a["max_jump_step"],
+            residual_std=a["residual_std_eV_per_atom"], drift=a["drift_eV_per_atom"],
+            classification=a["classification"]))
+        groups.append(GROUP_LABEL[r["group"]])
+    counts = [f"{GROUP_LABEL[g]}: {v['stable']}/{v['transition']}/{v['unstable']}"
+              for g, v in summary["groups"].items()]
+    plot_conserved(runs, out_dir / "figure3_md.png", labels=[""] * len(runs), groups=groups,
+                   title="runs stable/transition/unstable\n" + "; ".join(counts))
+    shown = {"figure3_md.png": counts}
+    # panels (b) and (c): one run of each class present (stable, transition, unstable) among
+    # the runs whose trajectory is here (study_outputs.py restores analyses only), whole 500 fs
+    # runs first (one the watchdog stopped shows only its start); the legend gives the study's
+    # class (a stopped run is unstable whatever its trajectory shows)
+    examples = {}
+    for r in sorted(summary["analyses"], key=lambda r: bool(r["stopped"])):
+        if (study.workdir / "md" / r["model"] / r["molecule"] / "trajectory.xyz").exists():
+            examples.setdefault(r["classification"], r)
+    if examples:
+        labels = [f"{r['model']}/{r['molecule']}" for r in examples.values()]
+        plot_conserved_series(
+            [study.workdir / "md" / r["model"] / r["molecule"] for r in examples.values()],
+            out_dir / "figure3_series.png", labels=labels, discard_steps=discard,
+            classes=[r["classification"] + (" (stopped by the watchdog)" if r["stopped"]
+                                            else "") for r in examples.values()])
+        shown["figure3_series.png"] = labels
+    return shown
 
 
 def md_summary(study: Study) -> dict | None:
@@ -1227,8 +1239,11 @@ def targets(result: dict) -> list[dict]:
     mae = None
     if ir and "aug" in ir["groups"]:
         mae = ir["groups"]["aug"]["frequency_mae"]["mean"]
+    n_test = result["data"]["by_split"]["test"]["molecules"]
+    partial = (f" ({ir['n_molecules']} of {n_test} molecules so far)"
+               if ir and ir["n_molecules"] < n_test else "")
     out.append({"target": "harmonic IR frequency MAE (augmented) <= 30 cm⁻¹ (paper ~15)",
-                "measured": None if mae is None else f"{mae:.1f} cm⁻¹",
+                "measured": None if mae is None else f"{mae:.1f} cm⁻¹{partial}",
                 "met": None if mae is None else mae <= 30.0})
     md = result.get("md")
     g = (md or {}).get("groups", {}).get("aug")
@@ -1309,14 +1324,20 @@ def stage_table(study: Study, out_dir: Path | None = None) -> dict:
         "md": md_summary(study),
         "paper": PAPER,
     }
+    # the figures of this table's models, beside results.md (a stage run on some groups
+    # only does not decide what the table shows)
+    figures = {}
+    if result["ir"]:
+        figures["figure4_ir.png"] = figure4(study, out_dir)
     if result["md"]:
+        figures.update(figure3(study, result["md"], out_dir))
         result["md"].pop("analyses", None)
+    result["figures"] = {name: shown for name, shown in figures.items() if shown}
     second = study.cfg.get("evaluate", {}).get("second_test_set")
     if result["evaluation"]["pbe0_subset"] is None:
         result["evaluation"]["pbe0_subset_note"] = (
             f"{second}: not found or not evaluated; the second test set was skipped")
     result["targets"] = targets(result)
-    result["figures"] = copy_figures(study.workdir, out_dir)
     _write_json(out_dir / "results.json", result)
     _write_text(out_dir / "results.md", markdown(result, study.cfg.get("notes", "")))
     study.work["table"] += 1
@@ -1324,29 +1345,8 @@ def stage_table(study: Study, out_dir: Path | None = None) -> dict:
     return result
 
 
-#: the figures the ir and md stages draw in the work directory
-FIGURES = ("figure4_ir.png", "figure3_md.png", "figure3_series.png")
-
-
-def copy_figures(workdir: Path, out_dir: Path) -> list[str]:
-    """Copy the figures found in ``workdir`` (``FIGURES``) beside ``results.md`` in
-    ``out_dir`` (each through a temporary file and a rename); their names, for the markdown."""
-    from emlpack._files import write_bytes_atomic
-
-    names = []
-    for name in FIGURES:
-        source = workdir / name
-        if not source.exists():
-            continue
-        if source.resolve() != (out_dir / name).resolve():
-            out_dir.mkdir(parents=True, exist_ok=True)
-            write_bytes_atomic(out_dir / name, source.read_bytes())
-        names.append(name)
-    return names
-
-
 def _figure_md(result: dict, names: tuple[str, ...]) -> list[str]:
-    """Markdown images of those of ``names`` that ``stage_table`` copied beside results.md."""
+    """Markdown images of those of ``names`` that ``stage_table`` drew beside results.md."""
     return [f"![{n}]({n})" for n in names if n in result.get("figures", ())]
 
 
@@ -1466,7 +1466,10 @@ def markdown(result: dict, notes: str = "") -> str:
     ir = result["ir"]
     lines += ["### Figure 4 and harmonic IR frequencies", ""]
     if ir:
-        lines += [f"Frequency MAE over {ir['n_molecules']} test molecules (modes matched in"
+        n_test = result["data"]["by_split"]["test"]["molecules"]
+        of = (f"the {ir['n_molecules']} of {n_test} test molecules with a DFT Hessian so far"
+              if ir["n_molecules"] < n_test else f"{ir['n_molecules']} test molecules")
+        lines += [f"Frequency MAE over {of} (modes matched in"
                   " ascending order), mean (± std) over models: "
                   + ", ".join(f"{GROUP_LABEL[g]} {_ms(v['frequency_mae'], 1, 1)} cm⁻¹"
                               for g, v in ir["groups"].items())

@@ -90,15 +90,18 @@ def test_every_stage_writes_its_outputs(study_run):
     freqs = np.array(dft["frequencies_cm-1"])
     assert len(freqs) == 3 * 5 - 6 and np.all(freqs > 500)  # a minimum: real frequencies
     assert np.all(np.array(dft["intensities_km_per_mol"]) >= 0)
-    assert (work / "figure3_md.png").stat().st_size > 1000
-    assert (work / "figure3_series.png").stat().st_size > 1000
-    assert (work / "figure4_ir.png").stat().st_size > 1000
-    assert (root / "results" / "results.json").exists()
+    result = json.loads((root / "results" / "results.json").read_text())
     md = (root / "results" / "results.md").read_text()
-    # the figures beside results.md (committed with it), shown in it
+    # the table draws the figures of its own models beside results.md (committed with it)
     for name in ("figure3_md.png", "figure3_series.png", "figure4_ir.png"):
-        assert (root / "results" / name).read_bytes() == (work / name).read_bytes()
+        assert (root / "results" / name).stat().st_size > 1000
         assert f"![{name}]({name})" in md
+        assert not (work / name).exists()
+    shown = result["figures"]
+    assert shown["figure4_ir.png"] == [
+        "methane: DFT (pbe0/sto-3g)", "methane: eMLP augmented (mean of 2)",
+        "methane: eMLP non-augmented (mean of 2)"]
+    assert [c.split(":")[0] for c in shown["figure3_md.png"]] == ["augmented", "non-augmented"]
     assert "Table 2" in md and "Table 3" in md and "Targets of issue 15" in md
     assert "4.45 (± 0.11)" in md  # the paper's numbers beside ours
     assert md.count("molecules with a DFT reference") == 2  # both sets' polarizabilities
@@ -273,6 +276,22 @@ def test_groups_restrict_training_to_the_chosen_group(study_run):
                     log=lambda m: None)
     with pytest.raises(SystemExit, match="unknown"):
         bad.groups()
+
+
+def test_a_table_of_one_group_shows_that_group_alone(study_run, tmp_path):
+    """The shipped ensemble's table (``groups=[aug]``) draws its figures from the augmented
+    models only, and the study's table both groups, whichever stage ran last (the figures
+    were once drawn by the ir and md stages, so a run on one group replaced the study's)."""
+    mod, cfg, _, root, _ = study_run
+    only = mod.Study(dict(cfg, groups=["aug"]), log=lambda m: None)
+    result = mod.stage_table(only, tmp_path)
+    shown = result["figures"]
+    assert shown["figure4_ir.png"] == ["methane: DFT (pbe0/sto-3g)",
+                                       "methane: eMLP augmented (mean of 2)"]
+    assert [c.split(":")[0] for c in shown["figure3_md.png"]] == ["augmented"]
+    assert all(label.startswith("aug-") for label in shown["figure3_series.png"])
+    study = json.loads((root / "results" / "results.json").read_text())
+    assert "non-augmented" in " ".join(study["figures"]["figure4_ir.png"])
 
 
 def test_step_schedule_gives_the_learning_curves_epochs():
