@@ -1108,7 +1108,8 @@ def figure3(study: Study, summary: dict, out_dir: Path) -> dict[str, list[str]]:
     counts = [f"{GROUP_LABEL[g]}: {v['stable']}/{v['transition']}/{v['unstable']}"
               for g, v in summary["groups"].items()]
     plot_conserved(runs, out_dir / "figure3_md.png", labels=[""] * len(runs), groups=groups,
-                   title="runs stable/transition/unstable\n" + "; ".join(counts))
+                   title="runs stable/transition/unstable\n" + "; ".join(counts),
+                   stopped=[bool(r["stopped"]) for r in summary["analyses"]])
     shown = {"figure3_md.png": counts}
     # panels (b) and (c): one run of each class present (stable, transition, unstable) among
     # the runs whose trajectory is here (study_outputs.py restores analyses only), whole 500 fs
@@ -1488,8 +1489,11 @@ def markdown(result: dict, notes: str = "") -> str:
                          f" {_val(v['max_jump_max'], 5)} |")
         lines += ["", f"Paper: {PAPER['md']['noaug_unstable_pct']} % of the non-augmented runs"
                   " unstable, none of the augmented ones (the paper does not check bonding)."
-                  " Panel a: slope against largest jump of every run; panels b, c: the"
-                  " conserved quantity of one run of each class.", ""]
+                  " Panel a: slope against largest jump of every run with a trajectory to"
+                  " analyse (crosses: stopped by the watchdog, counted unstable wherever their"
+                  " trajectory up to the stop puts them; a run stopped within the first steps"
+                  " has no point); panels b, c: the conserved quantity of one run of each"
+                  " class.", ""]
         lines += [*_figure_md(result, ("figure3_md.png", "figure3_series.png")), ""]
     else:
         lines += ["*not run yet (md stage).*", ""]

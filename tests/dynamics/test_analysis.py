@@ -213,6 +213,31 @@ def test_series_legend_gives_the_trajectory_class_or_the_callers(tmp_path, monke
                        [f"w: unstable (stopped), max jump {jump}"]]
 
 
+def test_scatter_marks_the_runs_the_watchdog_stopped(tmp_path, monkeypatch):
+    """Panel (a): a run the MD watchdog stopped is a cross of its group's colour with its own
+    legend entry (a study counts it unstable wherever its short trajectory puts it)."""
+    from emlpack.dynamics import analysis
+
+    runs = []
+    for k, jump in enumerate((1e-4, 2e-4, 3e-3)):
+        t, e, steps = _series(n_frames=30, slope=(k + 1) * 1e-6, jump=jump, jump_at=20,
+                              n_atoms=3)
+        runs.append(analyze_conserved(t, e, 3, steps))
+    drawn = []
+
+    def capture(png_path, figure, dpi=120):
+        ax = figure.axes[0]
+        drawn.append(([x.get_text() for x in ax.get_legend().get_texts()],
+                      [len(c.get_offsets()) for c in ax.collections if len(c.get_offsets())]))
+
+    monkeypatch.setattr(analysis, "write_figure_atomic", capture)
+    analysis.plot_conserved(runs, tmp_path / "a.png", groups=["aug", "aug", "noaug"],
+                            stopped=[False, True, False])
+    assert drawn == [(["aug", "aug, stopped by the watchdog", "noaug"], [1, 1, 1])]
+    with pytest.raises(ValueError, match="2 stopped flags"):
+        analysis.plot_conserved(runs, tmp_path / "a.png", stopped=[True, False])
+
+
 def test_trajectory_errors_name_file_and_frame(tmp_path):
     t, e, steps = _series(n_frames=30)
     frames = _water_frames(t, e, steps)

@@ -287,11 +287,14 @@ def plot_conserved(
     labels: Sequence[str] | None = None,
     groups: Sequence[str] | None = None,
     title: str = "",
+    stopped: Sequence[bool] | None = None,
 ) -> list[ConservedAnalysis]:
     """Scatter plot (PNG, written atomically) of ``(|s_cons|, max |dE_cons|)``, one point per
     run, log-log, with the stable/unstable thresholds; ``runs`` are results or trajectory
     paths (analysed with the default discard). ``groups`` colour the points (e.g.
-    "augmented"); ``labels`` annotate them (default: file stem). Returns the analyses."""
+    "augmented"); ``labels`` annotate them (default: file stem); ``stopped`` marks the runs the
+    MD watchdog stopped (crosses: a study counts them unstable, whatever the part of the
+    trajectory before the stop shows). Returns the analyses."""
     results = [r if isinstance(r, ConservedAnalysis) else analyze_trajectory(r) for r in runs]
     if not results:
         raise ValueError("plot_conserved: no runs")
@@ -301,9 +304,12 @@ def plot_conserved(
             labels = [Path(r.source).parent.name or Path(r.source).stem for r in results]
     if groups is None:
         groups = [""] * len(results)
-    if len(labels) != len(results) or len(groups) != len(results):
+    if stopped is None:
+        stopped = [False] * len(results)
+    if len(labels) != len(results) or len(groups) != len(results) \
+            or len(stopped) != len(results):
         raise ValueError(f"plot_conserved: {len(results)} runs, {len(labels)} labels,"
-                         f" {len(groups)} groups")
+                         f" {len(groups)} groups, {len(stopped)} stopped flags")
     import matplotlib
 
     matplotlib.use("Agg")
@@ -319,10 +325,14 @@ def plot_conserved(
     fig, ax = plt.subplots(figsize=(6.4, 4.8))
     colours = {"stable": "C2", "transition": "C1", "unstable": "C3"}
     for k, g in enumerate(dict.fromkeys(groups)):
-        sel = [i for i, gi in enumerate(groups) if gi == g]
-        point_colours = [f"C{k}" if g else colours[results[i].classification] for i in sel]
-        ax.scatter(x[sel], y[sel], s=36, zorder=3, c=point_colours, label=g or None,
-                   edgecolors="k", linewidths=0.5)
+        for cut, marker in ((False, "o"), (True, "X")):
+            sel = [i for i, gi in enumerate(groups) if gi == g and bool(stopped[i]) == cut]
+            if not sel:
+                continue
+            point_colours = [f"C{k}" if g else colours[results[i].classification] for i in sel]
+            label = ((g or "runs") + ", stopped by the watchdog") if cut else (g or None)
+            ax.scatter(x[sel], y[sel], s=36, zorder=3, c=point_colours, label=label,
+                       marker=marker, edgecolors="k", linewidths=0.5)
     for xi, yi, text in zip(x, y, labels, strict=True):
         ax.annotate(text, (xi, yi), textcoords="offset points", xytext=(4, 4), fontsize=8)
     ax.set_xscale("log")
@@ -345,7 +355,7 @@ def plot_conserved(
     ax.set_xlabel(r"$|s_\mathrm{cons}|$ (eV/fs per atom)")
     ax.set_ylabel(r"$\max|\Delta E_\mathrm{cons}|$ (eV per atom)")
     ax.set_title(title or "MD stability: conserved quantity per atom")
-    if any(groups):
+    if any(groups) or any(stopped):
         ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
     write_figure_atomic(png_path, fig, dpi=120)
