@@ -7,13 +7,22 @@ model whose pairs do not merge, float64, one thread.
 
 from __future__ import annotations
 
+import json
 import logging
 
 import numpy as np
 import pytest
 import torch
 
-from emlpack.dynamics.md import CHECKPOINT, TRAJECTORY, MDWatchdogError, Watchdog, run_md
+from emlpack.dynamics.analysis import analyze_trajectory, classify
+from emlpack.dynamics.md import (
+    CHECKPOINT,
+    STOPPED,
+    TRAJECTORY,
+    MDWatchdogError,
+    Watchdog,
+    run_md,
+)
 from emlpack.io import read_structures
 from emlpack.properties.optimize import optimize
 from tests.nn.helpers import water_molecule
@@ -181,6 +190,18 @@ def test_watchdog_stops_with_clear_error_after_writing(water, tmp_path):
     frames = _frames(tmp_path)
     assert [f.info["step"] for f in frames] == [0, 1, 2, 3]
     assert (tmp_path / CHECKPOINT).exists()
+    # the folder says the run was stopped: its analysis is "unstable" whatever the four
+    # steps' conserved quantity shows (here a smooth NVE start)
+    stop = json.loads((tmp_path / STOPPED).read_text())
+    assert stop["step"] == 4 and stop["last_good_step"] == 3
+    assert "from the nearest core" in stop["reason"]
+    a = analyze_trajectory(tmp_path, discard_steps=0)
+    assert classify(a.max_jump) == "stable" and a.classification == "unstable"
+    assert a.stopped == stop["reason"] and "stopped by the MD watchdog" in a.text()
+    # resumed with a sane watchdog, the run finishes and the marker goes
+    run_md(model, s, 10, tmp_path, ensemble="nve", temperature_K=300, guess_method="lewis")
+    assert not (tmp_path / STOPPED).exists()
+    assert analyze_trajectory(tmp_path, discard_steps=0).stopped == ""
 
 
 #: the SIGKILLed run of test_resume_continues_the_same_trajectory, in its own process

@@ -28,7 +28,7 @@ import logging
 import math
 import os
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -91,7 +91,9 @@ class ConservedAnalysis:
         max_jump_step: step at the end of the largest jump.
         residual_std: standard deviation of E_cons about the fit (eV per atom).
         drift: slope x duration (eV per atom).
-        classification: "stable", "transition" or "unstable" (from max_jump).
+        classification: "stable", "transition" or "unstable" (from max_jump; "unstable"
+            for a run the MD watchdog stopped).
+        stopped: why the MD watchdog stopped the run (its ``stopped.json``), else "".
     """
 
     source: str
@@ -109,6 +111,7 @@ class ConservedAnalysis:
     residual_std: float
     drift: float
     classification: str
+    stopped: str = ""
 
     def as_dict(self) -> dict:
         """Plain dict; keys with units: ``slope_eV_per_fs_per_atom`` etc."""
@@ -129,6 +132,7 @@ class ConservedAnalysis:
             "residual_std_eV_per_atom": d["residual_std"],
             "drift_eV_per_atom": d["drift"],
             "classification": d["classification"],
+            "stopped": d["stopped"],
             "thresholds_eV_per_atom": {"stable_below": STABLE_MAX_JUMP,
                                        "unstable_above": UNSTABLE_MAX_JUMP},
         }
@@ -140,6 +144,7 @@ class ConservedAnalysis:
             f" max jump {self.max_jump:.3e} eV/atom (step {self.max_jump_step}),"
             f" {self.n_frames} frames over {self.duration:.1f} fs"
             f" ({self.n_discarded} discarded, stride {self.stride_steps})"
+            + (f"; stopped by the MD watchdog: {self.stopped}" if self.stopped else "")
         )
 
 
@@ -274,10 +279,21 @@ def analyze_trajectory(
     path: str | os.PathLike, discard_steps: int = DISCARD_STEPS
 ) -> ConservedAnalysis:
     """:func:`analyze_conserved` of the trajectory file ``path`` (frames' ``time``, ``step``
-    and ``conserved_energy``; nuclei count from the frames)."""
+    and ``conserved_energy``; nuclei count from the frames). A run the MD watchdog stopped
+    (``stopped.json`` beside the trajectory) is "unstable", whatever its frames show."""
+    from emlpack.dynamics.md import STOPPED
+
     times, energies, steps, n_atoms = read_conserved(path)
-    return analyze_conserved(times, energies, n_atoms, steps, discard_steps,
-                             source=str(trajectory_file(path)))
+    traj = trajectory_file(path)
+    result = analyze_conserved(times, energies, n_atoms, steps, discard_steps, source=str(traj))
+    marker = traj.parent / STOPPED
+    if marker.exists():
+        try:
+            reason = str(json.loads(marker.read_text())["reason"])
+        except (ValueError, KeyError, TypeError):
+            reason = f"{marker} (unreadable)"
+        result = replace(result, classification="unstable", stopped=reason)
+    return result
 
 
 # ------------------------------------------------------------------------------------ plot
@@ -417,7 +433,7 @@ def run_analysis(
     for r in results:
         log(r.text())
     if plot:
-        plot_conserved(results, plot, groups=groups)
+        plot_conserved(results, plot, groups=groups, stopped=[bool(r.stopped) for r in results])
         log(f"wrote {plot}")
     if series:
         plot_conserved_series(paths, series, discard_steps=discard_steps)

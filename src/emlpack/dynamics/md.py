@@ -44,7 +44,9 @@ analysis sees the jump. Otherwise, if both fallbacks fail, the run stops with
 Outputs in the directory ``output``: ``trajectory.xyz`` (native extxyz, one frame per recorded
 step, pairs as ``Es`` rows; see :func:`frame_structure` for the ``info`` keys), ``checkpoint.npz``
 (full integrator, thermostat and pair state, written atomically with the byte length of the
-trajectory it belongs to) and ``summary.json``; progress and watchdog events go to
+trajectory it belongs to) and ``summary.json`` (``stopped.json`` instead when the watchdog stopped
+the run: :func:`emlpack.dynamics.analysis.analyze_trajectory` then calls it unstable); progress
+and watchdog events go to
 the module's logger (``emlp md`` writes them to ``md.log``). Re-running the same
 call resumes from the checkpoint (a partial trailing frame is cut off) and continues the same
 trajectory.
@@ -96,6 +98,7 @@ __all__ = [
     "run_md",
     "TRAJECTORY",
     "CHECKPOINT",
+    "STOPPED",
 ]
 
 TRAJECTORY = "trajectory.xyz"
@@ -104,6 +107,10 @@ CHECKPOINT = "checkpoint.npz"
 #: ``logging.getLogger(__name__)``; the CLI installs the handlers)
 LOG = "md.log"
 SUMMARY = "summary.json"
+#: written when the watchdog stops a run (``{"step", "last_good_step", "reason"}``), so that an
+#: analysis of the partial trajectory knows it is not a finished run; removed by a run that
+#: finishes (a resumed one) or starts over
+STOPPED = "stopped.json"
 
 _log = logging.getLogger(__name__)
 
@@ -522,9 +529,12 @@ class _Run:
             kept_text = f"the trajectory and checkpoint up to step {self.step} are in {self.dir}"
         else:
             kept_text = "nothing written"
-        raise MDWatchdogError(
-            f"MD {what} {failed}: the electron pairs could not be relaxed ("
-            + " | ".join(tried) + f"); stopped, {kept_text}")
+        message = (f"MD {what} {failed}: the electron pairs could not be relaxed ("
+                   + " | ".join(tried) + f"); stopped, {kept_text}")
+        stop = {"step": failed, "last_good_step": self.step if what == "step" else None,
+                "reason": message}
+        atomic_write(self.dir / STOPPED, lambda fh: json.dump(stop, fh, indent=1))
+        raise MDWatchdogError(message)
 
     def initial(self) -> None:
         """Velocities and the relaxed pairs of step 0."""
@@ -555,7 +565,7 @@ class _Run:
             self.log.info("resuming from step %d (%d frames) in %s", self.step, self.frames,
                           self.dir)
         else:
-            for path in (self.traj, self.ckpt):
+            for path in (self.traj, self.ckpt, self.dir / STOPPED):
                 if path.exists():
                     path.unlink()
             self.log.info("MD %s: %d steps, dt %g fs, T %s K, field %s V/Å, relax %s, %d cores,"
@@ -616,6 +626,7 @@ class _Run:
             events=self.events,
         )
         atomic_write(self.dir / SUMMARY, lambda fh: json.dump(asdict(result), fh, indent=1))
+        (self.dir / STOPPED).unlink(missing_ok=True)  # a stopped run resumed to its end
         self.log.info("done: %d steps, %d frames, %d watchdog events, %.2f evaluations/step,"
                       " %.3f Hessians/step, %.4f s/step", result.steps, result.frames,
                       result.watchdog_events, result.evaluations_per_step,
