@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from emlpack.dynamics.analysis import analyze_trajectory, classify
+from emlpack.dynamics.analysis import analyze_trajectory, classify, run_analysis
 from emlpack.dynamics.md import (
     CHECKPOINT,
     STOPPED,
@@ -198,6 +198,12 @@ def test_watchdog_stops_with_clear_error_after_writing(water, tmp_path):
     a = analyze_trajectory(tmp_path, discard_steps=0)
     assert classify(a.max_jump) == "stable" and a.classification == "unstable"
     assert a.stopped == stop["reason"] and "stopped by the MD watchdog" in a.text()
+    lines: list[str] = []  # emlp md-analysis of the folder: its line, JSON and scatter say so
+    run_analysis([tmp_path], plot=tmp_path / "a.png", json_path=tmp_path / "a.json",
+                 discard_steps=0, log=lines.append)
+    (run,) = json.loads((tmp_path / "a.json").read_text())["runs"]
+    assert run["classification"] == "unstable" and run["stopped"] == stop["reason"]
+    assert "unstable" in lines[0] and "stopped by the MD watchdog" in lines[0]
     # resumed with a sane watchdog, the run finishes and the marker goes
     run_md(model, s, 10, tmp_path, ensemble="nve", temperature_K=300, guess_method="lewis")
     assert not (tmp_path / STOPPED).exists()

@@ -436,7 +436,9 @@ def run_analysis(
         plot_conserved(results, plot, groups=groups, stopped=[bool(r.stopped) for r in results])
         log(f"wrote {plot}")
     if series:
-        plot_conserved_series(paths, series, discard_steps=discard_steps)
+        plot_conserved_series(paths, series, discard_steps=discard_steps,
+                              classes=[r.classification + (" (stopped)" if r.stopped else "")
+                                       for r in results])
         log(f"wrote {series}")
     if json_path:
         write_json_atomic(json_path, {"discard_steps": discard_steps,
