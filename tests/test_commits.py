@@ -57,3 +57,14 @@ def test_outside_a_repository_it_warns_and_returns_false(tmp_path, caplog):
     (tmp_path / "x").write_text("x")
     assert not git_commit([tmp_path / "x"], "m", tries=1)
     assert "not in a git repository" in caplog.text
+
+
+def test_paths_another_job_committed_already_are_no_failure(repo, caplog):
+    """Two jobs list the same finished files; the second finds them committed: success at
+    once, no retries, no warning (it used to retry and warn "could not commit")."""
+    (repo / "a.npz").write_text("a")
+    assert git_commit([repo / "a.npz", repo / "other.txt"], "first")
+    (repo / "other.txt").write_text("edited, not staged\n")  # a session's work in progress
+    assert git_commit([repo / "a.npz"], "again", tries=1)
+    assert _git(repo, "log", "--format=%s").split() == ["first"]
+    assert "could not commit" not in caplog.text

@@ -35,6 +35,10 @@ def git_commit(paths: list[Path], message: str, tries: int = 5) -> bool:
         add = subprocess.run(["git", "add", "-A", "--", *rel], cwd=root, capture_output=True,
                              text=True)
         if add.returncode == 0:
+            same = subprocess.run(["git", "diff", "--cached", "--quiet", "--", *rel], cwd=root,
+                                  capture_output=True)
+            if same.returncode == 0:  # nothing to commit (e.g. another job committed them)
+                return True
             com = subprocess.run(["git", "commit", "-q", "-m", message, "--", *rel], cwd=root,
                                  capture_output=True, text=True)
             if com.returncode == 0 or "nothing" in com.stdout + com.stderr:
