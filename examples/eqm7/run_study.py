@@ -22,11 +22,13 @@ temporary file and renamed, so a killed run leaves no half-written result)::
                     polarizability vs DFT -> WORKDIR/polarizability/MODEL.json (test
                     molecules) and WORKDIR/polarizability/pbe0_subset/MODEL.json
     ir              every model: optimisation from the DFT geometry, harmonic IR
-                    -> WORKDIR/ir/MODEL.json; Figure 4 PNG (aziridine, 3-(methylamino)but-2-enal)
+                    -> WORKDIR/ir/MODEL.json
     md              NVT runs (500 fs, 300 K, 0.5 fs) per test molecule x model
-                    -> WORKDIR/md/MODEL/NAME/{trajectory.xyz, analysis.json}; Figure 3 PNG
+                    -> WORKDIR/md/MODEL/NAME/{trajectory.xyz, analysis.json}
     table           RESULTS_DIR/results.json + results.md (paper's numbers beside ours,
-                    issue 15's targets with the measured values)
+                    issue 15's targets with the measured values) and the figures of the
+                    chosen groups' models: Figure 4 PNG (aziridine, 3-(methylamino)but-2-enal),
+                    Figure 3 PNGs
     export          the augmented ensemble as a pretrained model (float32 weights + a model
                     card with the measured errors from results.json) -> the package's
                     src/emlpack/pretrained/NAME/ when status is final, else
