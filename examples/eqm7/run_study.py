@@ -929,21 +929,31 @@ def ir_summary(study: Study) -> dict | None:
         r = _read_json(study.workdir / "ir" / f"{name}.json")
         if r is None:
             continue
-        per_mol = {}
+        # a failed optimisation (bonding changed: another molecule, e.g. a tautomer; broken
+        # pairs) has no spectrum to compare: excluded from the MAE, listed in the table
+        per_mol, excluded = {}, {}
         for mol, row in r["molecules"].items():
-            if mol in refs and "frequencies" in row:
+            if mol not in refs:
+                continue
+            if row.get("failure"):
+                excluded[mol] = row["failure"]
+            elif "frequencies" in row:
                 per_mol[mol] = _freq_mae(row["frequencies"], refs[mol]["frequencies_cm-1"])
         vals = [v for v in per_mol.values() if v is not None]
         g = out["groups"].setdefault(group, {"per_model": {}})
         g["per_model"][name] = {
             "frequency_mae": float(np.mean(vals)) if vals else None,
             "per_molecule": per_mol,
+            "excluded": excluded,
             "failures": {m: row["failure"] for m, row in r["molecules"].items()
                          if row.get("failure")}}
     if not out["groups"]:
         return None
     for g in out["groups"].values():
         g["frequency_mae"] = mean_std([m["frequency_mae"] for m in g["per_model"].values()])
+        g["compared"] = sum(len(m["per_molecule"]) for m in g["per_model"].values())
+        g["excluded"] = {f"{name}/{mol}": why for name, m in g["per_model"].items()
+                         for mol, why in m["excluded"].items()}
     return out
 
 
@@ -978,11 +988,10 @@ def figure4(study: Study, out_dir: Path) -> list[str]:
                                  fwhm), "k", lw=1.2, label=f"DFT ({ref['level']})")
         labels.append(f"{mol}: DFT ({ref['level']})")
         for k, (group, colour) in enumerate((("aug", "C2"), ("noaug", "C3"))):
-            curves = [lorentzian(grid, r["molecules"][mol]["frequencies"],
-                                 r["molecules"][mol]["intensities"], fwhm)
-                      for name, r in per_model.items()
-                      if r and name.startswith(group + "-") and "frequencies"
-                      in r["molecules"].get(mol, {})]
+            rows = [r["molecules"].get(mol, {}) for name, r in per_model.items()
+                    if r and name.startswith(group + "-")]
+            curves = [lorentzian(grid, row["frequencies"], row["intensities"], fwhm)
+                      for row in rows if "frequencies" in row and not row.get("failure")]
             if curves:
                 label = f"eMLP {GROUP_LABEL[group]} (mean of {len(curves)})"
                 ax.plot(grid, np.mean(curves, axis=0), color=colour, lw=1.0,
@@ -1245,6 +1254,9 @@ def targets(result: dict) -> list[dict]:
     n_test = result["data"]["by_split"]["test"]["molecules"]
     partial = (f" ({ir['n_molecules']} of {n_test} molecules so far)"
                if ir and ir["n_molecules"] < n_test else "")
+    if mae is not None and ir["groups"]["aug"].get("excluded"):
+        n = len(ir["groups"]["aug"]["excluded"])
+        partial += f"; {n} failed optimisation{'s' if n > 1 else ''} excluded"
     out.append({"target": "harmonic IR frequency MAE (augmented) <= 30 cm⁻¹ (paper ~15)",
                 "measured": None if mae is None else f"{mae:.1f} cm⁻¹{partial}",
                 "met": None if mae is None else mae <= 30.0})
@@ -1346,6 +1358,12 @@ def stage_table(study: Study, out_dir: Path | None = None) -> dict:
     study.work["table"] += 1
     study.log(f"table: {out_dir / 'results.md'}")
     return result
+
+
+def _first_clause(reason: str) -> str:
+    """A failure's first clause (up to the first ';'), its parentheses closed."""
+    head = reason.split(";")[0]
+    return head + ")" * max(head.count("(") - head.count(")"), 0)
 
 
 def _figure_md(result: dict, names: tuple[str, ...]) -> list[str]:
@@ -1477,6 +1495,13 @@ def markdown(result: dict, notes: str = "") -> str:
                   + ", ".join(f"{GROUP_LABEL[g]} {_ms(v['frequency_mae'], 1, 1)} cm⁻¹"
                               for g, v in ir["groups"].items())
                   + f"; paper ~{PAPER['ir']['frequency_mae_cm-1']:g} cm⁻¹.", ""]
+        for g, v in ir["groups"].items():
+            if v.get("excluded"):  # an optimisation that failed has no spectrum to compare
+                lines += [f"{GROUP_LABEL[g].capitalize()}: {v['compared']} optimisation"
+                          f"{'s' if v['compared'] != 1 else ''}"
+                          f" compared, {len(v['excluded'])} excluded (the figure's mean"
+                          " spectra too): " + "; ".join(f"{k} ({_first_clause(why)})" for k, why
+                                                       in v["excluded"].items()) + ".", ""]
         lines += [*_figure_md(result, ("figure4_ir.png",)), ""]
     else:
         lines += ["*not computed yet (dft and ir stages).*", ""]
@@ -1767,8 +1792,13 @@ def model_card(result: dict, name: str, group: str, n_models: int,
     if ir:
         over = (f" over the {n_ir} of {by['test']['molecules']} test molecules with a DFT"
                 " Hessian so far" if n_ir and n_ir < by["test"]["molecules"] else "")
+        excluded = ir.get("excluded") or {}
+        failed = (f"; {len(excluded)} of {ir['compared'] + len(excluded)} optimisations"
+                  " left out, failed: " + "; ".join(
+                      f"{k} ({_first_clause(why)})" for k, why in excluded.items())
+                  if excluded else "")
         lines.append(f"Harmonic IR frequencies: MAE {_ms(ir['frequency_mae'], 1, 1)} cm⁻¹"
-                     f" against PBE0/aug-cc-pVTZ{over} (modes in ascending order).")
+                     f" against PBE0/aug-cc-pVTZ{over} (modes in ascending order{failed}).")
     if md:
         of = (f" (members {', '.join(m.removeprefix(f'{group}-s') for m in md_ran)} of"
               f" {n_models} so far)" if 0 < len(md_ran) < n_models else "")

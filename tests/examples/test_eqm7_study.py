@@ -294,6 +294,35 @@ def test_a_table_of_one_group_shows_that_group_alone(study_run, tmp_path):
     assert "non-augmented" in " ".join(study["figures"]["figure4_ir.png"])
 
 
+def test_a_failed_ir_optimisation_is_excluded_and_listed(study_run, tmp_path):
+    """An optimisation that changed the bonding (another molecule: no spectrum to compare)
+    leaves the frequency MAE and Figure 4's mean spectrum, and the table lists it (it used to
+    be averaged in, a tautomer's frequencies against the DFT molecule's)."""
+    import shutil
+
+    mod, cfg, _, root, _ = study_run
+    work = tmp_path / "work"
+    shutil.copytree(root / "work", work, ignore=shutil.ignore_patterns("md", "*.xyz"))
+    path = work / "ir" / "aug-s1.json"
+    bad = json.loads(path.read_text())
+    bad["molecules"]["methane"]["failure"] = "bonding changed: bond C0-H1 (1.09 -> 1.80 Å) broken"
+    path.write_text(json.dumps(bad))
+    study = mod.Study(dict(cfg, workdir=str(work)), log=lambda m: None)
+    ir = mod.ir_summary(study)
+    aug, noaug = ir["groups"]["aug"], ir["groups"]["noaug"]
+    assert aug["per_model"]["aug-s1"]["frequency_mae"] is None  # nothing left to compare
+    assert aug["frequency_mae"]["mean"] == aug["per_model"]["aug-s0"]["frequency_mae"]
+    assert (aug["compared"], noaug["compared"]) == (1, 2)
+    assert list(aug["excluded"]) == ["aug-s1/methane"] and not noaug["excluded"]
+    result = mod.stage_table(study, tmp_path / "results")
+    assert "methane: eMLP augmented (mean of 1)" in result["figures"]["figure4_ir.png"]
+    md = (tmp_path / "results" / "results.md").read_text()
+    assert "Augmented: 1 optimisation compared, 1 excluded" in md
+    assert "aug-s1/methane (bonding changed: bond C0-H1 (1.09 -> 1.80 Å) broken)" in md
+    card = mod.model_card(result, "mini-eqm7", "aug", 2)
+    assert "1 of 2 optimisations left out, failed: aug-s1/methane (bonding changed:" in card
+
+
 def test_step_schedule_gives_the_learning_curves_epochs():
     """``training.steps``: the 10x learning-curve models (849 training configurations, batch
     16: 54 steps per epoch) were trained for 1370 epochs, the rate halved every 174.07."""
