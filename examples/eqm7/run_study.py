@@ -1114,13 +1114,12 @@ def figure3(study: Study, summary: dict, out_dir: Path) -> dict[str, list[str]]:
             slope=a["slope_eV_per_fs_per_atom"], intercept=a["intercept_eV_per_atom"],
             max_jump=a["max_jump_eV_per_atom"], max_jump_step=a["max_jump_step"],
             residual_std=a["residual_std_eV_per_atom"], drift=a["drift_eV_per_atom"],
-            classification=a["classification"]))
+            classification=a["classification"], stopped=r["stopped"] or ""))
         groups.append(GROUP_LABEL[r["group"]])
     counts = [f"{GROUP_LABEL[g]}: {v['stable']}/{v['transition']}/{v['unstable']}"
               for g, v in summary["groups"].items()]
     plot_conserved(runs, out_dir / "figure3_md.png", labels=[""] * len(runs), groups=groups,
-                   title="runs stable/transition/unstable\n" + "; ".join(counts),
-                   stopped=[bool(r["stopped"]) for r in summary["analyses"]])
+                   title="runs stable/transition/unstable\n" + "; ".join(counts))
     shown = {"figure3_md.png": counts}
     # panels (b) and (c): one run of each class present (stable, transition, unstable) among
     # the runs whose trajectory is here (study_outputs.py restores analyses only), whole 500 fs

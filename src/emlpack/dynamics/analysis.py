@@ -281,19 +281,25 @@ def analyze_trajectory(
     """:func:`analyze_conserved` of the trajectory file ``path`` (frames' ``time``, ``step``
     and ``conserved_energy``; nuclei count from the frames). A run the MD watchdog stopped
     (``stopped.json`` beside the trajectory) is "unstable", whatever its frames show."""
-    from emlpack.dynamics.md import STOPPED
-
     times, energies, steps, n_atoms = read_conserved(path)
     traj = trajectory_file(path)
-    result = analyze_conserved(times, energies, n_atoms, steps, discard_steps, source=str(traj))
+    return _with_stop(analyze_conserved(times, energies, n_atoms, steps, discard_steps,
+                                        source=str(traj)), traj)
+
+
+def _with_stop(result: ConservedAnalysis, traj: Path) -> ConservedAnalysis:
+    """``result`` of the trajectory ``traj``, "unstable" with the reason when the MD watchdog
+    stopped its run (``stopped.json`` beside it)."""
+    from emlpack.dynamics.md import STOPPED
+
     marker = traj.parent / STOPPED
-    if marker.exists():
-        try:
-            reason = str(json.loads(marker.read_text())["reason"])
-        except (ValueError, KeyError, TypeError):
-            reason = f"{marker} (unreadable)"
-        result = replace(result, classification="unstable", stopped=reason)
-    return result
+    if not marker.exists():
+        return result
+    try:
+        reason = str(json.loads(marker.read_text())["reason"])
+    except (ValueError, KeyError, TypeError):
+        reason = f"{marker} (unreadable)"
+    return replace(result, classification="unstable", stopped=reason)
 
 
 # ------------------------------------------------------------------------------------ plot
@@ -309,8 +315,8 @@ def plot_conserved(
     run, log-log, with the stable/unstable thresholds; ``runs`` are results or trajectory
     paths (analysed with the default discard). ``groups`` colour the points (e.g.
     "augmented"); ``labels`` annotate them (default: file stem); ``stopped`` marks the runs the
-    MD watchdog stopped (crosses: a study counts them unstable, whatever the part of the
-    trajectory before the stop shows). Returns the analyses."""
+    MD watchdog stopped (crosses: unstable, whatever the part of the trajectory before the stop
+    shows; default: each result's ``stopped``). Returns the analyses."""
     results = [r if isinstance(r, ConservedAnalysis) else analyze_trajectory(r) for r in runs]
     if not results:
         raise ValueError("plot_conserved: no runs")
@@ -321,7 +327,7 @@ def plot_conserved(
     if groups is None:
         groups = [""] * len(results)
     if stopped is None:
-        stopped = [False] * len(results)
+        stopped = [bool(r.stopped) for r in results]
     if len(labels) != len(results) or len(groups) != len(results) \
             or len(stopped) != len(results):
         raise ValueError(f"plot_conserved: {len(results)} runs, {len(labels)} labels,"
@@ -388,8 +394,8 @@ def plot_conserved_series(
 ) -> None:
     """The paper's panels (b)/(c): ``E_cons(t) - E_cons(t_first)`` (eV per atom) of each
     trajectory after the discard, with its fitted line; PNG written atomically. The legend
-    gives each run's class: ``classes[k]`` when given (a study that counts a run stopped by
-    the MD watchdog as unstable passes its own), else the trajectory's (``analyze_conserved``)."""
+    gives each run's class: ``classes[k]`` when given (a study with its own record of the
+    runs the MD watchdog stopped), else the trajectory's (as :func:`analyze_trajectory`)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -398,13 +404,16 @@ def plot_conserved_series(
     fig, ax = plt.subplots(figsize=(7, 4))
     for k, path in enumerate(paths):
         times, energies, steps, n_atoms = read_conserved(path)
-        r = analyze_conserved(times, energies, n_atoms, steps, discard_steps,
-                              source=str(trajectory_file(path)))
+        traj = trajectory_file(path)
+        r = _with_stop(analyze_conserved(times, energies, n_atoms, steps, discard_steps,
+                                         source=str(traj)), traj)
         keep = steps >= steps[0] + discard_steps
         t, e = times[keep], energies[keep] / n_atoms
         label = labels[k] if labels else Path(r.source).parent.name or Path(r.source).stem
+        cls = classes[k] if classes else (
+            r.classification + (" (stopped by the watchdog)" if r.stopped else ""))
         ax.plot(t, e - e[0], color=f"C{k}", lw=1,
-                label=f"{label}: {classes[k] if classes else r.classification},"
+                label=f"{label}: {cls},"
                       f" max jump {r.max_jump:.1e}")
         ax.plot(t, r.intercept - e[0] + r.slope * (t - t[0]), color=f"C{k}", ls=":", lw=1)
     ax.set_xlabel("time (fs)")
@@ -433,12 +442,10 @@ def run_analysis(
     for r in results:
         log(r.text())
     if plot:
-        plot_conserved(results, plot, groups=groups, stopped=[bool(r.stopped) for r in results])
+        plot_conserved(results, plot, groups=groups)
         log(f"wrote {plot}")
     if series:
-        plot_conserved_series(paths, series, discard_steps=discard_steps,
-                              classes=[r.classification + (" (stopped)" if r.stopped else "")
-                                       for r in results])
+        plot_conserved_series(paths, series, discard_steps=discard_steps)
         log(f"wrote {series}")
     if json_path:
         write_json_atomic(json_path, {"discard_steps": discard_steps,
