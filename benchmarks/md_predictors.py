@@ -3,7 +3,7 @@ first evaluation of a step? (issue 14: one-evaluation steps need ~2e-4 eV/Å)
 
 Along a tight reference trajectory (hexane, the ``benchmarks/md.py`` start, NVT 300 K, dt 0.5 fs,
 ``warm`` at fmax 1e-10 eV/Å) the exact pair-pair Hessian ``H_k`` and core-pair block ``C_k``
-(forward differences, :func:`emlpack.pairs.solvers._hessian_columns`'s scheme) are computed at
+(forward differences, :func:`emlpack.pairs.solvers.difference_blocks`'s scheme) are computed at
 every frame, with the exact linear response ``J_k = -H_k^-1 C_k^T`` (d pairs / d cores). Each
 predictor of the pairs ``p_k`` at the cores ``c_k`` from the earlier frames is scored by its
 linearised first residual ``max |H_k (p_pred - p_k)|`` (eV/Å; the largest pair-force component

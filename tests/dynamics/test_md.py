@@ -365,7 +365,7 @@ def test_newton_correction_of_core_forces_is_second_order(water):
     """The "corrected" mode's final step: pairs p + s with s = -H_pp^-1 g_p, core gradient
     g_c + H_cp s. With exact blocks the error against the relaxed pairs shrinks ~4x when the
     pair error halves (second order), while the uncorrected core-force error shrinks ~2x."""
-    from emlpack.pairs.solvers import _hessian_columns, energy_gradient_function
+    from emlpack.pairs.solvers import difference_blocks, energy_gradient_function
 
     model, s = water
     rng = np.random.default_rng(3)
@@ -383,7 +383,7 @@ def test_newton_correction_of_core_forces_is_second_order(water):
     for delta in (2e-3, 1e-3):
         pairs = s.pairs + delta * direction
         evaluate, _ = energy_gradient_function(model, s.copy(pairs=pairs))
-        hpp, hcp = _hessian_columns(evaluate, pairs, nc, h=1e-6)
+        hpp, hcp = difference_blocks(evaluate, pairs, nc, h=1e-6)
         grad = gradient(pairs)
         step = -np.linalg.solve(hpp, grad[nc:].reshape(-1))
         raw.append(np.abs(grad[:nc].reshape(-1) - exact).max())

@@ -163,7 +163,7 @@ def test_exact_blocks_equal_autograd_and_the_forward_differences():
     position Hessian of a random EMLP on C2H6O under a field, with pairs off their minimum;
     the forward differences used for models with their own energy agree to their step's
     error. A toy model with its own energy term gets the differences."""
-    from emlpack.pairs.solvers import _hessian_columns, energy_gradient_function, exact_blocks
+    from emlpack.pairs.solvers import difference_blocks, energy_gradient_function, exact_blocks
     from tests.nn.helpers import eqm7_molecule, random_model
 
     model = random_model(seed=2, elements=(1, 6, 8))
@@ -177,13 +177,13 @@ def test_exact_blocks_equal_autograd_and_the_forward_differences():
     scale = np.abs(full).max()
     np.testing.assert_allclose(hpp, full[k:, k:], rtol=0, atol=1e-12 * scale)
     np.testing.assert_allclose(hcp, full[:k, k:], rtol=0, atol=1e-12 * scale)
-    fd_pp, fd_cp = _hessian_columns(energy_gradient_function(model, s)[0], s.pairs, s.n_cores)
+    fd_pp, fd_cp = difference_blocks(energy_gradient_function(model, s)[0], s.pairs, s.n_cores)
     np.testing.assert_allclose(fd_pp, hpp, rtol=0, atol=1e-3 * scale)
     np.testing.assert_allclose(fd_cp, hcp, rtol=0, atol=1e-3 * scale)
     w = water_molecule()
     toy = spring_model(w)
     toy_pp, toy_cp = exact_blocks(toy, w)
-    ref_pp, ref_cp = _hessian_columns(energy_gradient_function(toy, w)[0], w.pairs, w.n_cores)
+    ref_pp, ref_cp = difference_blocks(energy_gradient_function(toy, w)[0], w.pairs, w.n_cores)
     np.testing.assert_array_equal(toy_pp, ref_pp)
     np.testing.assert_array_equal(toy_cp, ref_cp)
 

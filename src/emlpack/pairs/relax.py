@@ -1555,12 +1555,13 @@ def _results(structures: Sequence[Structure], prob: _PairProblem, x: torch.Tenso
     return out
 
 
-def pair_hessian(model: EMLP, structure: Structure) -> np.ndarray:
+def pair_hessian(model: EMLP, structure: Structure, method: str = "fast") -> np.ndarray:
     """Exact pair-block Hessian (eV/Å^2), shape (3P, 3P), of one structure at its pairs
     (cores fixed); rows/columns ordered pair by pair, x y z (:meth:`_PairProblem.hessians`:
-    the closed-form SchNet block for EMLP's own energy, else 3P reverse passes)."""
+    ``"fast"``, the closed-form SchNet block for EMLP's own energy, else, or with
+    ``"reverse"``, 3P reverse passes)."""
     g = model.graph(structure, dtype=torch.float64)
     prob = _PairProblem(model, g)
     if prob.n_max == 0:
         return np.zeros((0, 0))
-    return prob.hessians(g.positions[prob.pair_idx])[0].numpy()
+    return prob.hessians(g.positions[prob.pair_idx], method=method)[0].numpy()
