@@ -103,6 +103,10 @@ PAPER = {
 GROUP_LABEL = {"aug": "augmented", "noaug": "non-augmented"}
 #: the IR molecules of Figure 4 (names in molecules.csv)
 IR_MOLECULES = {"qm7-0011": "aziridine", "extra-0000": "3-(methylamino)but-2-enal"}
+#: bands of the DFT frequency (cm⁻¹) for the IR errors by kind of mode: torsions, out-of-plane
+#: and skeletal bends; C-C/C-N/C-O stretches and X-H bends, C=C/C=O/C=N; triple bonds;
+#: X-H stretches
+IR_BANDS = ((0.0, 1000.0), (1000.0, 1800.0), (1800.0, 2600.0), (2600.0, 4500.0))
 
 
 # ---------------------------------------------------------------------- config
@@ -915,11 +919,30 @@ def stage_ir(study: Study) -> None:
     _at_dft_optima(study, "ir", row)
 
 
-def _freq_mae(a, b) -> float | None:
+def _freq_errors(a, b) -> tuple[np.ndarray, np.ndarray] | None:
+    """The model's frequencies ``a`` minus the DFT ones ``b`` (cm⁻¹), modes matched in
+    ascending order, and ``b`` sorted; None when the mode counts differ."""
     a, b = np.sort(np.asarray(a)), np.sort(np.asarray(b))
     if len(a) != len(b) or not len(a):
         return None
-    return float(np.abs(a - b).mean())
+    return a - b, b
+
+
+def _band_errors(errors: list[tuple[np.ndarray, np.ndarray]]) -> list[dict]:
+    """MAE and mean signed error (cm⁻¹) of the pooled modes in each of :data:`IR_BANDS` (by
+    the DFT frequency)."""
+    if not errors:
+        return [{"band": list(band), "n": 0, "mae": None, "mean_error": None}
+                for band in IR_BANDS]
+    e = np.concatenate([d for d, _ in errors])
+    ref = np.concatenate([b for _, b in errors])
+    out = []
+    for lo, hi in IR_BANDS:
+        m = (ref >= lo) & (ref < hi)
+        out.append({"band": [lo, hi], "n": int(m.sum()),
+                    "mae": float(np.abs(e[m]).mean()) if m.any() else None,
+                    "mean_error": float(e[m].mean()) if m.any() else None})
+    return out
 
 
 def ir_summary(study: Study) -> dict | None:
@@ -931,19 +954,23 @@ def ir_summary(study: Study) -> dict | None:
             continue
         # a failed optimisation (bonding changed: another molecule, e.g. a tautomer; broken
         # pairs) has no spectrum to compare: excluded from the MAE, listed in the table
-        per_mol, excluded = {}, {}
+        per_mol, excluded, errors = {}, {}, []
         for mol, row in r["molecules"].items():
             if mol not in refs:
                 continue
             if row.get("failure"):
                 excluded[mol] = row["failure"]
             elif "frequencies" in row:
-                per_mol[mol] = _freq_mae(row["frequencies"], refs[mol]["frequencies_cm-1"])
+                err = _freq_errors(row["frequencies"], refs[mol]["frequencies_cm-1"])
+                per_mol[mol] = None if err is None else float(np.abs(err[0]).mean())
+                if err is not None:
+                    errors.append(err)
         vals = [v for v in per_mol.values() if v is not None]
         g = out["groups"].setdefault(group, {"per_model": {}})
         g["per_model"][name] = {
             "frequency_mae": float(np.mean(vals)) if vals else None,
             "per_molecule": per_mol,
+            "bands": _band_errors(errors),
             "excluded": excluded,
             "failures": {m: row["failure"] for m, row in r["molecules"].items()
                          if row.get("failure")}}
@@ -951,6 +978,12 @@ def ir_summary(study: Study) -> dict | None:
         return None
     for g in out["groups"].values():
         g["frequency_mae"] = mean_std([m["frequency_mae"] for m in g["per_model"].values()])
+        g["bands"] = [{"band": list(band), "n": [m["bands"][k]["n"]
+                                               for m in g["per_model"].values()],
+                       "mae": mean_std([m["bands"][k]["mae"] for m in g["per_model"].values()]),
+                       "mean_error": mean_std([m["bands"][k]["mean_error"]
+                                               for m in g["per_model"].values()])}
+                      for k, band in enumerate(IR_BANDS)]
         g["compared"] = sum(len(m["per_molecule"]) for m in g["per_model"].values())
         g["excluded"] = {f"{name}/{mol}": why for name, m in g["per_model"].items()
                          for mol, why in m["excluded"].items()}
@@ -1196,6 +1229,28 @@ def eval_summary(study: Study, set_name: str) -> dict | None:
             g["dynamic"]["error_rate"] = mean_std([r["dynamic"]["error_rate"] for r in rs])
         out["groups"][group] = g
     return out
+
+
+def _ir_bands_md(ir: dict) -> list[str]:
+    """The frequency errors by band of the DFT frequency (``ir_summary``'s ``bands``)."""
+    groups = {g: v for g, v in ir["groups"].items() if v.get("bands")}
+    if not groups:
+        return []
+    lines = ["By band of the DFT frequency (the compared molecules' modes pooled; MAE and mean"
+             " signed error, model minus DFT, mean (± std) over models, cm⁻¹; modes per model"
+             " in brackets):", "",
+             "| band [cm⁻¹] | " + " | ".join(f"{GROUP_LABEL[g]}: MAE | {GROUP_LABEL[g]}:"
+                                              " mean error" for g in groups) + " |",
+             "|---|" + "---|---|" * len(groups)]
+    for k, band in enumerate(IR_BANDS):
+        cells = []
+        for v in groups.values():
+            b = v["bands"][k]
+            n = sorted(set(b["n"]))
+            count = f"{n[0]}" if len(n) == 1 else f"{n[0]}-{n[-1]}"
+            cells += [f"{_ms(b['mae'])} [{count}]", _ms(b["mean_error"])]
+        lines.append(f"| {band[0]:g}-{band[1]:g} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
 
 
 def _ms(d: dict | None, scale: float = 1.0, digits: int = 1) -> str:
@@ -1494,6 +1549,7 @@ def markdown(result: dict, notes: str = "") -> str:
                   + ", ".join(f"{GROUP_LABEL[g]} {_ms(v['frequency_mae'], 1, 1)} cm⁻¹"
                               for g, v in ir["groups"].items())
                   + f"; paper ~{PAPER['ir']['frequency_mae_cm-1']:g} cm⁻¹.", ""]
+        lines += _ir_bands_md(ir)
         for g, v in ir["groups"].items():
             if v.get("excluded"):  # an optimisation that failed has no spectrum to compare
                 lines += [f"{GROUP_LABEL[g].capitalize()}: {v['compared']} optimisation"
@@ -1796,8 +1852,13 @@ def model_card(result: dict, name: str, group: str, n_models: int,
                   " left out, failed: " + "; ".join(
                       f"{k} ({_first_clause(why)})" for k, why in excluded.items())
                   if excluded else "")
+        bands = "; ".join(f"{b['band'][0]:g}-{b['band'][1]:g}: {_val(b['mae']['mean'])} /"
+                          f" {_val(b['mean_error']['mean'], 1)}" for b in ir.get("bands", ())
+                          if b["mae"]["mean"] is not None)
         lines.append(f"Harmonic IR frequencies: MAE {_ms(ir['frequency_mae'], 1, 1)} cm⁻¹"
-                     f" against PBE0/aug-cc-pVTZ{over} (modes in ascending order{failed}).")
+                     f" against PBE0/aug-cc-pVTZ{over} (modes in ascending order{failed})."
+                     + (f" By band of the DFT frequency (cm⁻¹; MAE / mean error, model minus"
+                        f" DFT, mean over members): {bands}." if bands else ""))
     if md:
         of = (f" (members {', '.join(m.removeprefix(f'{group}-s') for m in md_ran)} of"
               f" {n_models} so far)" if 0 < len(md_ran) < n_models else "")

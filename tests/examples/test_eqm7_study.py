@@ -319,8 +319,32 @@ def test_a_failed_ir_optimisation_is_excluded_and_listed(study_run, tmp_path):
     md = (tmp_path / "results" / "results.md").read_text()
     assert "Augmented: 1 optimisation compared, 1 excluded" in md
     assert "aug-s1/methane (bonding changed: bond C0-H1 (1.09 -> 1.80 Å) broken)" in md
+    assert "By band of the DFT frequency" in md  # the excluded model has no modes there
+    assert [b["n"] for b in aug["per_model"]["aug-s1"]["bands"]] == [0, 0, 0, 0]
     card = mod.model_card(result, "mini-eqm7", "aug", 2)
     assert "1 of 2 optimisations left out, failed: aug-s1/methane (bonding changed:" in card
+    band = next(b for b in aug["bands"] if b["mae"]["mean"] is not None)
+    assert (f"By band of the DFT frequency (cm⁻¹; MAE / mean error, model minus DFT, mean over"
+            f" members): {band['band'][0]:g}-{band['band'][1]:g}:") in card
+
+
+def test_ir_errors_by_band_of_the_dft_frequency():
+    """The IR errors by band: modes go to the band of their DFT frequency (matched in
+    ascending order), MAE and signed mean error per band, None for an empty band."""
+    mod = study_module()
+    model = [500.0, 1450.0, 3050.0, 3300.0]  # sorted before matching, as the DFT ones
+    dft = [3000.0, 1500.0, 520.0, 3200.0]
+    first = mod._freq_errors(model, dft)
+    assert first[1].tolist() == [520.0, 1500.0, 3000.0, 3200.0]
+    assert first[0].tolist() == [-20.0, -50.0, 50.0, 100.0]
+    assert mod._freq_errors([1.0, 2.0], [1.0]) is None  # another molecule: not compared
+    second = (np.array([-40.0]), np.array([900.0]))
+    bands = {tuple(b["band"]): b for b in mod._band_errors([first, second])}
+    assert [b["n"] for b in bands.values()] == [2, 1, 0, 2]
+    assert bands[(0.0, 1000.0)]["mae"] == pytest.approx(30.0)
+    assert bands[(0.0, 1000.0)]["mean_error"] == pytest.approx(-30.0)
+    assert bands[(1800.0, 2600.0)]["mae"] is None
+    assert bands[(2600.0, 4500.0)]["mean_error"] == pytest.approx(75.0)
 
 
 def test_step_schedule_gives_the_learning_curves_epochs():
