@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import ROOT, require
-from tests.examples.eqm7_data import PER_MOLECULE, study_module, tiny_dataset
+from tests.examples.eqm7_data import PER_MOLECULE, example_module, study_module, tiny_dataset
 
 
 @pytest.fixture(scope="module")
@@ -334,17 +334,43 @@ def test_ir_errors_by_band_of_the_dft_frequency():
     mod = study_module()
     model = [500.0, 1450.0, 3050.0, 3300.0]  # sorted before matching, as the DFT ones
     dft = [3000.0, 1500.0, 520.0, 3200.0]
-    first = mod._freq_errors(model, dft)
+    first = mod.freq_errors(model, dft)
     assert first[1].tolist() == [520.0, 1500.0, 3000.0, 3200.0]
     assert first[0].tolist() == [-20.0, -50.0, 50.0, 100.0]
-    assert mod._freq_errors([1.0, 2.0], [1.0]) is None  # another molecule: not compared
+    assert mod.freq_errors([1.0, 2.0], [1.0]) is None  # another molecule: not compared
     second = (np.array([-40.0]), np.array([900.0]))
-    bands = {tuple(b["band"]): b for b in mod._band_errors([first, second])}
+    bands = {tuple(b["band"]): b for b in mod.band_errors([first, second])}
     assert [b["n"] for b in bands.values()] == [2, 1, 0, 2]
     assert bands[(0.0, 1000.0)]["mae"] == pytest.approx(30.0)
     assert bands[(0.0, 1000.0)]["mean_error"] == pytest.approx(-30.0)
     assert bands[(1800.0, 2600.0)]["mae"] is None
     assert bands[(2600.0, 4500.0)]["mean_error"] == pytest.approx(75.0)
+
+
+def test_ir_modes_diagnostic_gives_a_model_its_own_frequencies_back(study_run):
+    """examples/eqm7/ir_modes.py: the DFT modes replaced by the model's own Born-Oppenheimer
+    Hessian give its own frequencies back (Rayleigh quotients of its eigenvectors); pairs
+    stiffened by 1/(1 - 0) change nothing, and a stiffer pair block only raises the
+    frequencies (the pairs' relaxation softens the cores less: Weyl's inequality)."""
+    from emlpack.pairs.relax import relax_pairs
+    from emlpack.properties.hessian import extended_hessian
+    from emlpack.properties.ir import ir_from_hessian
+    from emlpack.train.evaluate import load_for_evaluation
+
+    mod, _, study, _, _ = study_run
+    diagnostic = example_module("ir_modes")
+    s = mod.dft_structure(mod.ir_references(study)["methane"])
+    path = next(p for group, _, p in study.models() if group == "aug")
+    model = load_for_evaluation(path)[0]
+    relaxed = s.copy(pairs=relax_pairs(model, s)[0].pairs)
+    own = ir_from_hessian(extended_hessian(model, relaxed)[1].numpy(), relaxed)
+    same = diagnostic.model_frequencies(model, s, own.hessian, 0.0)
+    assert same["dft_geometry"] == pytest.approx(own.frequencies.tolist(), abs=1e-6)
+    assert same["dft_modes"] == pytest.approx(own.frequencies.tolist(), rel=1e-8, abs=1e-4)
+    assert same["stiffer_pairs"] == pytest.approx(same["dft_geometry"], abs=1e-6)
+    stiff = diagnostic.model_frequencies(model, s, own.hessian, 0.5)["stiffer_pairs"]
+    assert min(np.subtract(stiff, same["dft_geometry"])) > -1e-6
+    assert max(np.subtract(stiff, same["dft_geometry"])) > 1.0
 
 
 def test_step_schedule_gives_the_learning_curves_epochs():
