@@ -1874,7 +1874,11 @@ def model_card(result: dict, name: str, group: str, n_models: int,
         lines.append(f"Harmonic IR frequencies: MAE {_ms(ir['frequency_mae'], 1, 1)} cm⁻¹"
                      f" against PBE0/aug-cc-pVTZ{over} (modes in ascending order{failed})."
                      + (f" By band of the DFT frequency (cm⁻¹; MAE / mean error, model minus"
-                        f" DFT, mean over members): {bands}." if bands else ""))
+                        f" DFT, mean over members): {bands}." if bands else "")
+                     + (f" The members' optimised geometries lie {_ms(ir['rmsd_vs_dft'], 1, 3)}"
+                        f" Å (RMSD, largest {_val(ir['rmsd_vs_dft_max'], 2)} Å) from the DFT"
+                        " optima." if (ir.get("rmsd_vs_dft") or {}).get("mean") is not None
+                        else ""))
     if md:
         of = (f" (members {', '.join(m.removeprefix(f'{group}-s') for m in md_ran)} of"
               f" {n_models} so far)" if 0 < len(md_ran) < n_models else "")

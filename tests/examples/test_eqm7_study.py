@@ -326,6 +326,7 @@ def test_a_failed_ir_optimisation_is_excluded_and_listed(study_run, tmp_path):
     band = next(b for b in aug["bands"] if b["mae"]["mean"] is not None)
     assert (f"By band of the DFT frequency (cm⁻¹; MAE / mean error, model minus DFT, mean over"
             f" members): {band['band'][0]:g}-{band['band'][1]:g}:") in card
+    assert "Å (RMSD, largest" in card and "from the DFT optima." in card
 
 
 def test_ir_errors_by_band_of_the_dft_frequency():
