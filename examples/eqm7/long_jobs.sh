@@ -282,18 +282,27 @@ t = campaign_target('$DATA')[1]
 print(f\"target: {t['configurations']} configurations of {t['molecules']} molecules;\"
       f\" labeled {t['labeled']} configurations of {t['labeled_molecules']} molecules;\"
       f\" {'reached' if t['reached'] else 'not reached'}\")"
+    started=$(for job in references references-a references-b; do
+      if running "$job"; then stat -c %Y "$PIDS/$job.pid"; fi; done | sort -n | head -1)
     PYTHONPATH=src "$PY" -c "
-import json, sys
+import json, sys, time
 from pathlib import Path
 refs = Path('$DATA/references/pbe0_aug-cc-pvtz')
+started = float('${started:-0}')  # when the running reference processes started (0: none)
 left = sys.argv[1:]
-calls = []
+calls, todo, recent = [], 0, 0
 for name in left:
     n = len(json.loads((refs / f'{name}.json').read_text())['numbers']) \\
         if (refs / f'{name}.json').exists() else None
-    done = len(list((refs / name / 'vib-internal').glob('*[+-].npz')))  # config: internal
-    calls.append(f'{name} {done}/{2 * (3 * n - 6)}' if n else f'{name} (static)')
+    files = list((refs / name / 'vib-internal').glob('*[+-].npz'))  # config: internal
+    calls.append(f'{name} {len(files)}/{2 * (3 * n - 6)}' if n else f'{name} (static)')
+    todo += 2 * (3 * n - 6) - len(files) if n else 0
+    recent += sum(f.stat().st_mtime > started for f in files) if started else 0
 print(f'references: {len(left)} harmonic references left' + (': ' + ', '.join(calls) if calls else ''))
+hours = (time.time() - started) / 3600 if started else 0
+if todo and recent and hours > 0.25:  # the pace of the running processes, all together
+    print(f'references: {todo} force calls left; {recent} done in the {hours:.1f} h since the'
+          f' processes started, ~{todo * hours / recent:.1f} h left at that pace')
 " $(remaining_references)
     for d in "$FINAL_SNAPSHOTS"/*/seed*; do
       if [ -d "$d" ]; then echo "$d: $(ls "$d" | tail -1)"; fi
