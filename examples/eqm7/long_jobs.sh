@@ -297,7 +297,8 @@ for name in left:
     files = list((refs / name / 'vib-internal').glob('*[+-].npz'))  # config: internal
     calls.append(f'{name} {len(files)}/{2 * (3 * n - 6)}' if n else f'{name} (static)')
     todo += 2 * (3 * n - 6) - len(files) if n else 0
-    recent += sum(f.stat().st_mtime > started for f in files) if started else 0
+if started:  # every displacement since then, also those of references finished since
+    recent = sum(f.stat().st_mtime > started for f in refs.glob('*/vib-internal/*[+-].npz'))
 print(f'references: {len(left)} harmonic references left' + (': ' + ', '.join(calls) if calls else ''))
 hours = (time.time() - started) / 3600 if started else 0
 if todo and recent and hours > 0.25:  # the pace of the running processes, all together
