@@ -1653,6 +1653,17 @@ def differences_md(result: dict) -> list[str]:
             " too large and less holds two pairs apart in MD than in the paper's augmented"
             " models (README and docs/pretrained.md: regression dilution of the pairs'"
             " stiffness).")
+    aug = ((result.get("ir") or {}).get("groups") or {}).get("aug") or {}
+    soft = next((b for b in aug.get("bands", ()) if b["band"][0] == 0.0), None)
+    rmsd = (aug.get("rmsd_vs_dft") or {}).get("mean")
+    if soft and soft["mae"]["mean"] is not None and rmsd is not None:
+        lines.append(
+            f"- **IR.** The frequency error is largest on the soft modes (below"
+            f" {soft['band'][1]:g} cm⁻¹: MAE {soft['mae']['mean']:.0f} cm⁻¹, mean error"
+            f" {soft['mean_error']['mean']:+.0f}): torsions and bends, the flattest"
+            f" directions of the surface. The augmented models' minima lie"
+            f" {rmsd:.2f} Å (RMSD) from the DFT ones, and at the DFT optimum their surfaces"
+            " are concave along some of these modes (README: `ir_modes.py`).")
     return lines + [""]
 
 

@@ -346,6 +346,16 @@ def test_ir_errors_by_band_of_the_dft_frequency():
     assert bands[(0.0, 1000.0)]["mean_error"] == pytest.approx(-30.0)
     assert bands[(1800.0, 2600.0)]["mae"] is None
     assert bands[(2600.0, 4500.0)]["mean_error"] == pytest.approx(75.0)
+    # "Why our numbers differ" names the soft modes' error and the displaced minima
+    result = {"data": {"configurations": 12, "by_split": {"train": {"molecules": 2}}},
+              "ir": {"groups": {"aug": {"rmsd_vs_dft": {"mean": 0.2}, "bands": [
+                  {"band": [0.0, 1000.0], "mae": {"mean": 77.8}, "mean_error": {"mean": -33.0}},
+              ]}}}}
+    text = "\n".join(mod.differences_md(result))
+    assert "soft modes (below 1000 cm⁻¹: MAE 78 cm⁻¹, mean error -33)" in text
+    assert "minima lie 0.20 Å (RMSD) from the DFT ones" in text
+    result["ir"]["groups"]["aug"]["bands"][0]["mae"]["mean"] = None  # no soft mode compared
+    assert "**IR.**" not in "\n".join(mod.differences_md(result))
 
 
 def test_ir_modes_diagnostic_gives_a_model_its_own_frequencies_back(study_run):
