@@ -240,6 +240,12 @@ def test_models_on_the_complete_data_set_carry_no_notice_and_say_what_is_pending
     assert "still being computed" not in card
     assert "The study's final export replaces this card" in card
     assert "so far)" not in card and "with a DFT Hessian so far" not in card
+    # the final study's card keeps the caution (the same errors), without the pending list
+    result["status"] = "final"
+    card = mod.model_card(result, "mini-eqm7", "aug", 2)
+    assert "**Accuracy.** Trained on the complete data set" in card
+    assert "several times the paper's" in card and "Study in progress" not in card
+    assert "Status: **final**" in card
 
 
 def test_dft_plan_finishes_the_figure_molecules_then_polarizabilities_then_hessians():
