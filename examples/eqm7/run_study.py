@@ -915,9 +915,25 @@ def stage_ir(study: Study) -> None:
             out["failure"] = "bonding changed: " + "; ".join(changes)
         elif o.pair_check:
             out["failure"] = f"broken electron pairs: {o.pair_check}"
+        else:
+            out["failure"] = not_a_minimum(out["frequencies"])
         return out
 
     _at_dft_optima(study, "ir", row)
+
+
+def not_a_minimum(frequencies) -> str:
+    """A failure when the harmonic frequencies (cm⁻¹, imaginary ones negative) hold an
+    imaginary mode (the optimisation ended on a saddle point, as ``emlp ir`` warns), else ''."""
+    f = np.asarray(frequencies, dtype=float)
+    n = int((f < 0).sum())
+    return f"not a minimum: {n} imaginary mode(s) (lowest {f.min():.1f} cm⁻¹)" if n else ""
+
+
+def ir_failure(row: dict) -> str:
+    """Why a row of the ir stage has no spectrum to compare ('' when it has one): its recorded
+    failure, or a saddle point (files written before the stage checked for one)."""
+    return row.get("failure") or not_a_minimum(row.get("frequencies", []))
 
 
 def freq_errors(a, b) -> tuple[np.ndarray, np.ndarray] | None:
@@ -959,8 +975,9 @@ def ir_summary(study: Study) -> dict | None:
         for mol, row in r["molecules"].items():
             if mol not in refs:
                 continue
-            if row.get("failure"):
-                excluded[mol] = row["failure"]
+            why = ir_failure(row)
+            if why:
+                excluded[mol] = why
             elif "frequencies" in row:
                 err = freq_errors(row["frequencies"], refs[mol]["frequencies_cm-1"])
                 per_mol[mol] = None if err is None else float(np.abs(err[0]).mean())
@@ -980,8 +997,8 @@ def ir_summary(study: Study) -> dict | None:
             "rmsd_vs_dft": float(np.mean(list(rmsd.values()))) if rmsd else None,
             "rmsd_vs_dft_max": max(rmsd.values()) if rmsd else None,
             "excluded": excluded,
-            "failures": {m: row["failure"] for m, row in r["molecules"].items()
-                         if row.get("failure")}}
+            "failures": {m: ir_failure(row) for m, row in r["molecules"].items()
+                         if ir_failure(row)}}
     if not out["groups"]:
         return None
     for g in out["groups"].values():
@@ -1035,7 +1052,7 @@ def figure4(study: Study, out_dir: Path) -> list[str]:
             rows = [r["molecules"].get(mol, {}) for name, r in per_model.items()
                     if r and name.startswith(group + "-")]
             curves = [lorentzian(grid, row["frequencies"], row["intensities"], fwhm)
-                      for row in rows if "frequencies" in row and not row.get("failure")]
+                      for row in rows if "frequencies" in row and not ir_failure(row)]
             if curves:
                 label = f"eMLP {GROUP_LABEL[group]} (mean of {len(curves)})"
                 ax.plot(grid, np.mean(curves, axis=0), color=colour, lw=1.0,

@@ -335,6 +335,31 @@ def test_a_failed_ir_optimisation_is_excluded_and_listed(study_run, tmp_path):
     assert "Å (RMSD, largest" in card and "from the DFT optima." in card
 
 
+def test_an_ir_optimisation_ending_on_a_saddle_point_is_excluded(study_run, tmp_path):
+    """A model optimum with an imaginary mode is no minimum: its frequencies leave the MAE as
+    a failed optimisation does, also in files written before the stage checked for it."""
+    import shutil
+
+    mod, cfg, _, root, _ = study_run
+    assert mod.not_a_minimum([12.0, 1500.0]) == ""
+    assert (mod.ir_failure({"failure": "", "frequencies": [-50.0, -3.0, 1500.0]})
+            == "not a minimum: 2 imaginary mode(s) (lowest -50.0 cm⁻¹)")
+    assert mod.ir_failure({"failure": "bonding changed: x", "frequencies": [-5.0]}) == (
+        "bonding changed: x")
+    work = tmp_path / "work"
+    shutil.copytree(root / "work", work, ignore=shutil.ignore_patterns("md", "*.xyz"))
+    path = work / "ir" / "noaug-s0.json"
+    old = json.loads(path.read_text())
+    row = old["molecules"]["methane"]
+    row["frequencies"] = [-50.0, *row["frequencies"][1:]]
+    path.write_text(json.dumps(old))
+    study = mod.Study(dict(cfg, workdir=str(work)), log=lambda m: None)
+    noaug = mod.ir_summary(study)["groups"]["noaug"]
+    assert noaug["compared"] == 1 and noaug["per_model"]["noaug-s0"]["frequency_mae"] is None
+    assert noaug["excluded"] == {
+        "noaug-s0/methane": "not a minimum: 1 imaginary mode(s) (lowest -50.0 cm⁻¹)"}
+
+
 def test_ir_errors_by_band_of_the_dft_frequency():
     """The IR errors by band: modes go to the band of their DFT frequency (matched in
     ascending order), MAE and signed mean error per band, None for an empty band."""
