@@ -20,7 +20,7 @@ optimum from the DFT Boys centres, cores at the DFT optimum (no optimisation):
 Each is summarised like the study's ``ir_summary`` (MAE per molecule, then mean over them; and
 by band of the DFT frequency, ``run_study.IR_BANDS``), beside the study's own values from
 ``results.json``. A molecule is skipped for a model whose pair relaxation at the DFT geometry
-fails (the study's ``ir`` stage fails there too). About 1 s CPU per molecule and model.
+fails (the study's ``ir`` stage fails there too). About 0.3 s CPU per molecule and model.
 """
 
 from __future__ import annotations
