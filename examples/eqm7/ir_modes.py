@@ -91,12 +91,7 @@ def summary(rows: dict[str, dict[str, dict]], refs: dict) -> dict:
         out[way] = {"per_model": per_model,
                     "frequency_mae": run_study.mean_std(
                         [m["frequency_mae"] for m in per_model.values()]),
-                    "bands": [{"band": list(band),
-                               "mae": run_study.mean_std([m["bands"][k]["mae"]
-                                                          for m in per_model.values()]),
-                               "mean_error": run_study.mean_std(
-                                   [m["bands"][k]["mean_error"] for m in per_model.values()])}
-                              for k, band in enumerate(run_study.IR_BANDS)]}
+                    "bands": run_study.bands_over_models(per_model.values())}
     return out
 
 
@@ -109,6 +104,7 @@ def main() -> None:
     args = ap.parse_args()
     import torch
 
+    from emlpack._files import write_json_atomic
     from emlpack.train.evaluate import load_for_evaluation
 
     torch.set_num_threads(1)
@@ -145,7 +141,7 @@ def main() -> None:
                                    **summary(rows, refs), "frequencies": rows}
         print_group(group, report["groups"][group])
     if args.json:
-        args.json.write_text(json.dumps(report, indent=1) + "\n")
+        write_json_atomic(args.json, report)
 
 
 def print_group(group: str, g: dict) -> None:

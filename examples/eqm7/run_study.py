@@ -962,6 +962,16 @@ def band_errors(errors: list[tuple[np.ndarray, np.ndarray]]) -> list[dict]:
     return out
 
 
+def bands_over_models(per_model) -> list[dict]:
+    """Each band's modes per model (``n``), MAE and mean error as mean ± std over the models,
+    from the models' :func:`band_errors` (``per_model``: dicts with ``"bands"``)."""
+    bands = [m["bands"] for m in per_model]
+    return [{"band": list(band), "n": [b[k]["n"] for b in bands],
+             "mae": mean_std([b[k]["mae"] for b in bands]),
+             "mean_error": mean_std([b[k]["mean_error"] for b in bands])}
+            for k, band in enumerate(IR_BANDS)]
+
+
 def ir_summary(study: Study) -> dict | None:
     refs = ir_references(study)
     out: dict = {"n_molecules": len(refs), "groups": {}}
@@ -970,7 +980,7 @@ def ir_summary(study: Study) -> dict | None:
         if r is None:
             continue
         # a failed optimisation (bonding changed: another molecule, e.g. a tautomer; broken
-        # pairs) has no spectrum to compare: excluded from the MAE, listed in the table
+        # pairs; a saddle point) has no spectrum to compare: excluded from the MAE, listed
         per_mol, excluded, errors, rmsd = {}, {}, [], {}
         for mol, row in r["molecules"].items():
             if mol not in refs:
@@ -1006,12 +1016,7 @@ def ir_summary(study: Study) -> dict | None:
         g["rmsd_vs_dft"] = mean_std([m["rmsd_vs_dft"] for m in g["per_model"].values()])
         g["rmsd_vs_dft_max"] = max((m["rmsd_vs_dft_max"] for m in g["per_model"].values()
                                     if m["rmsd_vs_dft_max"] is not None), default=None)
-        g["bands"] = [{"band": list(band), "n": [m["bands"][k]["n"]
-                                               for m in g["per_model"].values()],
-                       "mae": mean_std([m["bands"][k]["mae"] for m in g["per_model"].values()]),
-                       "mean_error": mean_std([m["bands"][k]["mean_error"]
-                                               for m in g["per_model"].values()])}
-                      for k, band in enumerate(IR_BANDS)]
+        g["bands"] = bands_over_models(g["per_model"].values())
         g["compared"] = sum(len(m["per_molecule"]) for m in g["per_model"].values())
         g["excluded"] = {f"{name}/{mol}": why for name, m in g["per_model"].items()
                          for mol, why in m["excluded"].items()}
