@@ -429,6 +429,33 @@ def test_step_schedule_gives_the_learning_curves_epochs():
     assert mod.step_schedule(dict(cfg["training"], steps=None), 849) == []
 
 
+def test_validation_curve_reads_the_committed_snapshots_best_epochs(study_run):
+    """validation_curve.py on the training snapshots: with the whole run's steps it finds each
+    model's kept best validation epoch (``done.json``), with fewer steps the best among the
+    epochs ended by then, with none no point; the group means are NumPy's."""
+    curve = example_module("validation_curve")
+    _, _, study, root, _ = study_run
+    logs = curve.latest_logs(root / "snapshots")
+    assert sorted(logs) == ["aug-s0", "aug-s1", "noaug-s0", "noaug-s1"]
+    result = curve.curve(root / "snapshots", [0, 10**9])
+    for _, name, best in study.models():
+        first, whole = result["models"][name]
+        assert first is None
+        done = json.loads((best.parent / "done.json").read_text())
+        assert whole["epoch"] == int(done["best_epoch"])
+        assert whole["val_forces_meV_per_A"] == pytest.approx(
+            1000 * done["best_val"]["val_forces_mae"], rel=1e-9)
+        rows = logs[name].read_text().splitlines()
+        epoch1 = dict(zip(rows[0].split(","), rows[1].split(","), strict=True))
+        after_one = curve.best_within(logs[name], [int(epoch1["step"])])[0]
+        assert (after_one["epoch"], after_one["val_loss"]) == (1, float(epoch1["val_loss"]))
+    for group in ("aug", "noaug"):
+        vals = [result["models"][f"{group}-s{k}"][1]["val_loss"] for k in (0, 1)]
+        assert result["groups"][group][1]["val_loss"]["mean"] == pytest.approx(np.mean(vals))
+        assert result["groups"][group][0]["val_loss"]["mean"] is None
+    assert "| aug: mean ± std |" in curve.markdown(result)
+
+
 def test_group_overrides_fine_tune_each_member_from_its_own_earlier_run(study_run):
     """``training.group_overrides`` with ``{group}``/``{seed}``: each augmented member of a new
     workdir starts from the same seed's model of the earlier run (at lr 0 its weights stay
