@@ -1441,7 +1441,7 @@ def stage_table(study: Study, out_dir: Path | None = None) -> dict:
             f"{second}: not found or not evaluated; the second test set was skipped")
     result["targets"] = targets(result)
     _write_json(out_dir / "results.json", result)
-    _write_text(out_dir / "results.md", markdown(result, study.cfg.get("notes", "")))
+    _write_text(out_dir / "results.md", markdown(result, study_notes(study.cfg)))
     study.work["table"] += 1
     study.log(f"table: {out_dir / 'results.md'}")
     return result
@@ -1529,6 +1529,17 @@ def _dynamic_md(ev: dict, pol: dict | None, title: str) -> list[str]:
         lines.append(f"| {GROUP_LABEL[group]}: error rate, paper | {_paper(p[group]['error_rate'])}"
                      f" % | | | {_paper(p[group]['polarizability_error_rate'])} % |")
     return lines + [""]
+
+
+def study_notes(cfg: dict) -> str:
+    """The paragraph under results.md's title: the text of ``notes_file`` when set (a
+    committed file, e.g. ``shipped/notes.md``), else ``notes``."""
+    path = cfg.get("notes_file")
+    if not path:
+        return cfg.get("notes", "") or ""
+    if not Path(path).is_file():
+        raise SystemExit(f"notes_file {path}: no such file")
+    return Path(path).read_text()
 
 
 def markdown(result: dict, notes: str = "") -> str:

@@ -300,6 +300,25 @@ def test_a_table_of_one_group_shows_that_group_alone(study_run, tmp_path):
     assert "non-augmented" in " ".join(study["figures"]["figure4_ir.png"])
 
 
+def test_the_notes_under_the_title_come_from_notes_or_a_committed_file(study_run, tmp_path):
+    """``notes_file`` (the shipped tables' ``shipped/notes.md``) wins over ``notes``; a
+    missing file stops the table with its name."""
+    mod, cfg, _, _, _ = study_run
+    notes = tmp_path / "notes.md"
+    notes.write_text("The shipped ensemble,\nwrapped over two lines.\n")
+    for extra, first in (({"notes": "Inline notes."}, "Inline notes."),
+                         ({"notes": "Inline notes.", "notes_file": str(notes)},
+                          "The shipped ensemble,")):
+        mod.stage_table(mod.Study(dict(cfg, **extra), log=lambda m: None), tmp_path / "out")
+        lines = (tmp_path / "out" / "results.md").read_text().splitlines()
+        assert lines[4] == first
+    assert mod.study_notes({"notes": None}) == ""
+    with pytest.raises(SystemExit, match="gone.md: no such file"):
+        mod.study_notes({"notes_file": str(tmp_path / "gone.md")})
+    shipped = ROOT / "examples" / "eqm7" / "shipped"
+    assert (shipped / "notes.md").read_text().strip() in (shipped / "results.md").read_text()
+
+
 def test_a_failed_ir_optimisation_is_excluded_and_listed(study_run, tmp_path):
     """An optimisation that changed the bonding (another molecule: no spectrum to compare)
     leaves the frequency MAE and Figure 4's mean spectrum, and the table lists it (it used to
