@@ -973,8 +973,13 @@ def bands_over_models(per_model) -> list[dict]:
 
 
 def ir_summary(study: Study) -> dict | None:
+    from ase import Atoms
+
     refs = ir_references(study)
-    out: dict = {"n_molecules": len(refs), "groups": {}}
+    out: dict = {"n_molecules": len(refs), "groups": {},
+                 "molecules": {m: {"formula": Atoms(numbers=r["numbers"]).get_chemical_formula(),
+                                   "modes": len(r["frequencies_cm-1"])}
+                               for m, r in sorted(refs.items())}}
     for group, name, _ in study.models():
         r = _read_json(study.workdir / "ir" / f"{name}.json")
         if r is None:
@@ -1017,6 +1022,9 @@ def ir_summary(study: Study) -> dict | None:
         g["rmsd_vs_dft_max"] = max((m["rmsd_vs_dft_max"] for m in g["per_model"].values()
                                     if m["rmsd_vs_dft_max"] is not None), default=None)
         g["bands"] = bands_over_models(g["per_model"].values())
+        g["per_molecule"] = {mol: mean_std([m["per_molecule"].get(mol)
+                                            for m in g["per_model"].values()])
+                             for mol in out["molecules"]}
         g["compared"] = sum(len(m["per_molecule"]) for m in g["per_model"].values())
         g["excluded"] = {f"{name}/{mol}": why for name, m in g["per_model"].items()
                          for mol, why in m["excluded"].items()}
@@ -1283,6 +1291,29 @@ def _ir_bands_md(ir: dict) -> list[str]:
             count = f"{n[0]}" if len(n) == 1 else f"{n[0]}-{n[-1]}"
             cells += [f"{_ms(b['mae'])} [{count}]", _ms(b["mean_error"])]
         lines.append(f"| {band[0]:g}-{band[1]:g} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
+
+
+def _ir_molecules_md(ir: dict) -> list[str]:
+    """The frequency MAE of each test molecule with a DFT Hessian (``ir_summary``'s
+    ``per_molecule``), mean (± std) over the models that compared it."""
+    groups = {g: v for g, v in ir["groups"].items() if v.get("per_molecule")}
+    if not groups or not ir.get("molecules"):
+        return []
+    n_models = {g: len(v["per_model"]) for g, v in groups.items()}
+    lines = ["By molecule (frequency MAE, cm⁻¹, mean (± std) over the models; in brackets the"
+             " models compared when an optimisation failed):", "",
+             "| molecule | formula | modes | " + " | ".join(GROUP_LABEL[g] for g in groups) + " |",
+             "|---|---|---|" + "---|" * len(groups)]
+    for mol, info in ir["molecules"].items():
+        name = IR_MOLECULES.get(mol)
+        cells = []
+        for g, v in groups.items():
+            d = v["per_molecule"].get(mol) or {}
+            n = d.get("n", 0)
+            cells.append(_ms(d) + (f" [{n} of {n_models[g]}]" if n < n_models[g] else ""))
+        lines.append(f"| {mol}{f' ({name})' if name else ''} | {info['formula']} |"
+                     f" {info['modes']} | " + " | ".join(cells) + " |")
     return [*lines, ""]
 
 
@@ -1594,6 +1625,7 @@ def markdown(result: dict, notes: str = "") -> str:
                               for g, v in ir["groups"].items())
                   + f"; paper ~{PAPER['ir']['frequency_mae_cm-1']:g} cm⁻¹.", ""]
         lines += _ir_bands_md(ir)
+        lines += _ir_molecules_md(ir)
         rmsd = [f"{GROUP_LABEL[g]} {_ms(v['rmsd_vs_dft'], 1, 3)} Å (largest"
                 f" {_val(v['rmsd_vs_dft_max'], 3)})" for g, v in ir["groups"].items()
                 if (v.get("rmsd_vs_dft") or {}).get("mean") is not None]

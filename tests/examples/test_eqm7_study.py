@@ -346,6 +346,14 @@ def test_a_failed_ir_optimisation_is_excluded_and_listed(study_run, tmp_path):
     assert "aug-s1/methane (bonding changed: bond C0-H1 (1.09 -> 1.80 Å) broken)" in md
     assert "By band of the DFT frequency" in md  # the excluded model has no modes there
     assert [b["n"] for b in aug["per_model"]["aug-s1"]["bands"]] == [0, 0, 0, 0]
+    # by molecule: the mean over the models that compared it, the others counted apart
+    assert ir["molecules"] == {"methane": {"formula": "CH4", "modes": 9}}
+    assert aug["per_molecule"]["methane"]["values"] == [
+        aug["per_model"]["aug-s0"]["per_molecule"]["methane"]]
+    assert noaug["per_molecule"]["methane"]["mean"] == pytest.approx(np.mean(
+        [m["per_molecule"]["methane"] for m in noaug["per_model"].values()]))
+    row = next(line for line in md.splitlines() if line.startswith("| methane | CH4 | 9 |"))
+    assert row.split(" | ")[3].endswith("[1 of 2]") and "[" not in row.split(" | ")[4]
     card = mod.model_card(result, "mini-eqm7", "aug", 2)
     assert "1 of 2 optimisations left out, failed: aug-s1/methane (bonding changed:" in card
     band = next(b for b in aug["bands"] if b["mae"]["mean"] is not None)
