@@ -304,6 +304,14 @@ hours = (time.time() - started) / 3600 if started else 0
 if todo and recent and hours > 0.25:  # the pace of the running processes, all together
     print(f'references: {todo} force calls left; {recent} done in the {hours:.1f} h since the'
           f' processes started, ~{todo * hours / recent:.1f} h left at that pace')
+    for name in left:  # each molecule under way at its own pace (the cost per call differs)
+        files = list((refs / name / 'vib-internal').glob('*[+-].npz'))
+        new = [f.stat().st_mtime for f in files if f.stat().st_mtime > started]
+        n = len(json.loads((refs / f'{name}.json').read_text())['numbers'])
+        if len(new) >= 2:
+            pace = (len(new) - 1) * 3600 / (max(new) - min(new))
+            print(f'  {name}: {pace:.0f} force calls per hour, ~'
+                  f'{(2 * (3 * n - 6) - len(files)) / pace:.1f} h to go')
 " $(remaining_references)
     for d in "$FINAL_SNAPSHOTS"/*/seed*; do
       if [ -d "$d" ]; then echo "$d: $(ls "$d" | tail -1)"; fi
