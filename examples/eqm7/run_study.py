@@ -972,6 +972,18 @@ def bands_over_models(per_model) -> list[dict]:
             for k, band in enumerate(IR_BANDS)]
 
 
+def rmsd_mae_pearson(per_model) -> float | None:
+    """Whether a molecule's frequency error follows its optimum's distance from DFT's: the
+    Pearson correlation of ``per_molecule`` MAE and ``rmsd_per_molecule`` over every (model,
+    molecule) with both; None for fewer than 3 or a constant side."""
+    pairs = np.array([(m["rmsd_per_molecule"][mol], mae) for m in per_model
+                      for mol, mae in m["per_molecule"].items()
+                      if mae is not None and mol in m["rmsd_per_molecule"]])
+    if len(pairs) < 3 or not np.ptp(pairs, axis=0).all():
+        return None
+    return float(np.corrcoef(pairs.T)[0, 1])
+
+
 def ir_summary(study: Study) -> dict | None:
     from ase import Atoms
 
@@ -1011,6 +1023,7 @@ def ir_summary(study: Study) -> dict | None:
             # aug-s0's optima of qm7-1404, qm7-0031 and extra-0000 is within 0.004 Å)
             "rmsd_vs_dft": float(np.mean(list(rmsd.values()))) if rmsd else None,
             "rmsd_vs_dft_max": max(rmsd.values()) if rmsd else None,
+            "rmsd_per_molecule": rmsd,
             "excluded": excluded,
             "failures": {m: ir_failure(row) for m, row in r["molecules"].items()
                          if ir_failure(row)}}
@@ -1026,6 +1039,7 @@ def ir_summary(study: Study) -> dict | None:
                                             for m in g["per_model"].values()])
                              for mol in out["molecules"]}
         g["compared"] = sum(len(m["per_molecule"]) for m in g["per_model"].values())
+        g["rmsd_mae_pearson"] = rmsd_mae_pearson(g["per_model"].values())
         g["excluded"] = {f"{name}/{mol}": why for name, m in g["per_model"].items()
                          for mol, why in m["excluded"].items()}
     return out
@@ -1315,6 +1329,16 @@ def _ir_molecules_md(ir: dict) -> list[str]:
         lines.append(f"| {mol}{f' ({name})' if name else ''} | {info['formula']} |"
                      f" {info['modes']} | " + " | ".join(cells) + " |")
     return [*lines, ""]
+
+
+def _rmsd_correlation_md(ir: dict) -> str:
+    r = {g: v["rmsd_mae_pearson"] for g, v in ir["groups"].items()
+         if v.get("rmsd_mae_pearson") is not None}
+    if not r:
+        return ""
+    return (" Across the compared optimisations (one per model and molecule) a molecule's"
+            " frequency MAE and its optimum's RMSD correlate with Pearson r = "
+            + ", ".join(f"{v:.2f} ({GROUP_LABEL[g]})" for g, v in r.items()) + ".")
 
 
 def _ms(d: dict | None, scale: float = 1.0, digits: int = 1) -> str:
@@ -1633,7 +1657,8 @@ def markdown(result: dict, notes: str = "") -> str:
             lines += ["The models' optima (each model optimises from the DFT optimum; the spectra"
                       " are each method's at its own minimum, as in the paper) lie away from the"
                       " DFT optimum by an RMSD of " + ", ".join(rmsd) + " (mean over the"
-                      " compared molecules, then mean (± std) over models).", ""]
+                      " compared molecules, then mean (± std) over models)."
+                      + _rmsd_correlation_md(ir), ""]
         for g, v in ir["groups"].items():
             if v.get("excluded"):  # an optimisation that failed has no spectrum to compare
                 lines += [f"{GROUP_LABEL[g].capitalize()}: {v['compared']} optimisation"

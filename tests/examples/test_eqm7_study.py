@@ -416,6 +416,22 @@ def test_ir_errors_by_band_of_the_dft_frequency():
     assert "**IR.**" not in "\n".join(mod.differences_md(result))
 
 
+def test_frequency_error_against_geometry_error_is_pearsons_r():
+    """The correlation of each (model, molecule)'s frequency MAE with its optimum's RMSD is
+    SciPy's Pearson r over the pairs with both; too few or constant: None."""
+    from scipy.stats import pearsonr
+
+    mod = study_module()
+    models = [{"per_molecule": {"a": 50.0, "b": 80.0, "c": None},
+               "rmsd_per_molecule": {"a": 0.1, "b": 0.4}},
+              {"per_molecule": {"a": 60.0, "b": 55.0}, "rmsd_per_molecule": {"a": 0.2, "b": 0.3}}]
+    r = mod.rmsd_mae_pearson(models)
+    assert r == pytest.approx(pearsonr([0.1, 0.4, 0.2, 0.3], [50, 80, 60, 55])[0], abs=1e-12)
+    assert mod.rmsd_mae_pearson(models[:1]) is None  # two pairs
+    flat = [dict(m, rmsd_per_molecule={"a": 0.2, "b": 0.2}) for m in models]
+    assert mod.rmsd_mae_pearson(flat) is None
+
+
 def test_ir_modes_diagnostic_gives_a_model_its_own_frequencies_back(study_run):
     """examples/eqm7/ir_modes.py: the DFT modes replaced by the model's own Born-Oppenheimer
     Hessian give its own frequencies back (Rayleigh quotients of its eigenvectors); pairs
