@@ -972,6 +972,25 @@ def bands_over_models(per_model) -> list[dict]:
             for k, band in enumerate(IR_BANDS)]
 
 
+def best_uniform_scale(errors: list[tuple[np.ndarray, np.ndarray]]) -> dict | None:
+    """The uniform scale factor s of the model's frequencies that minimises the MAE of the
+    pooled modes against DFT (cm⁻¹), as ``errors`` (model minus DFT, DFT) of
+    :func:`freq_errors`: the median of DFT/model weighted by the model frequency (Σ|s a - b| =
+    Σ a |s - b/a|); ``mae`` at s and ``mae_unscaled`` (s = 1). Modes at or below 0 ignored."""
+    if not errors:
+        return None
+    a = np.concatenate([d + b for d, b in errors])
+    b = np.concatenate([b for _, b in errors])
+    a, b = a[a > 0], b[a > 0]
+    if not len(a):
+        return None
+    order = np.argsort(b / a)
+    ratio, weight = (b / a)[order], a[order]
+    s = float(ratio[np.searchsorted(np.cumsum(weight), 0.5 * weight.sum())])
+    return {"factor": s, "mae": float(np.abs(s * a - b).mean()),
+            "mae_unscaled": float(np.abs(a - b).mean())}
+
+
 def rmsd_mae_pearson(per_model) -> float | None:
     """Whether a molecule's frequency error follows its optimum's distance from DFT's: the
     Pearson correlation of ``per_molecule`` MAE and ``rmsd_per_molecule`` over every (model,
@@ -1018,6 +1037,7 @@ def ir_summary(study: Study) -> dict | None:
             "frequency_mae": float(np.mean(vals)) if vals else None,
             "per_molecule": per_mol,
             "bands": band_errors(errors),
+            "uniform_scale": best_uniform_scale(errors),
             # the model's optimum against the DFT one (Å): mean and largest over the molecules
             # (not aligned: the optimisation moves no rigid body, the Kabsch-aligned RMSD of
             # aug-s0's optima of qm7-1404, qm7-0031 and extra-0000 is within 0.004 Å)
@@ -1035,6 +1055,9 @@ def ir_summary(study: Study) -> dict | None:
         g["rmsd_vs_dft_max"] = max((m["rmsd_vs_dft_max"] for m in g["per_model"].values()
                                     if m["rmsd_vs_dft_max"] is not None), default=None)
         g["bands"] = bands_over_models(g["per_model"].values())
+        scales = [m["uniform_scale"] for m in g["per_model"].values() if m["uniform_scale"]]
+        g["uniform_scale"] = {k: mean_std([x[k] for x in scales])
+                              for k in ("factor", "mae", "mae_unscaled")} if scales else None
         g["per_molecule"] = {mol: mean_std([m["per_molecule"].get(mol)
                                             for m in g["per_model"].values()])
                              for mol in out["molecules"]}
@@ -1329,6 +1352,17 @@ def _ir_molecules_md(ir: dict) -> list[str]:
         lines.append(f"| {mol}{f' ({name})' if name else ''} | {info['formula']} |"
                      f" {info['modes']} | " + " | ".join(cells) + " |")
     return [*lines, ""]
+
+
+def _uniform_scale_md(ir: dict) -> list[str]:
+    """Each group's best uniform scale factor of the frequencies (``ir_summary``)."""
+    groups = {g: v["uniform_scale"] for g, v in ir["groups"].items() if v.get("uniform_scale")}
+    if not groups:
+        return []
+    return ["A uniform scale factor of the model's frequencies (each model's best, minimising"
+            " its pooled modes' MAE; mean (± std) over models): " + "; ".join(
+                f"{GROUP_LABEL[g]} {_ms(v['factor'], digits=3)}, MAE {_ms(v['mae_unscaled'])}"
+                f" -> {_ms(v['mae'])} cm⁻¹" for g, v in groups.items()) + ".", ""]
 
 
 def _rmsd_correlation_md(ir: dict) -> str:
@@ -1649,6 +1683,7 @@ def markdown(result: dict, notes: str = "") -> str:
                               for g, v in ir["groups"].items())
                   + f"; paper ~{PAPER['ir']['frequency_mae_cm-1']:g} cm⁻¹.", ""]
         lines += _ir_bands_md(ir)
+        lines += _uniform_scale_md(ir)
         lines += _ir_molecules_md(ir)
         rmsd = [f"{GROUP_LABEL[g]} {_ms(v['rmsd_vs_dft'], 1, 3)} Å (largest"
                 f" {_val(v['rmsd_vs_dft_max'], 3)})" for g, v in ir["groups"].items()

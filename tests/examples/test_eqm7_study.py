@@ -416,6 +416,27 @@ def test_ir_errors_by_band_of_the_dft_frequency():
     assert "**IR.**" not in "\n".join(mod.differences_md(result))
 
 
+def test_best_uniform_scale_minimises_the_pooled_mae():
+    """The best uniform scale of the model's frequencies is the MAE's minimum over a fine scan
+    of scale factors; a model off by exactly 2 % everywhere gets 1/1.02 and MAE 0."""
+    mod = study_module()
+    rng = np.random.default_rng(3)
+    ref = [np.sort(rng.uniform(300, 3500, n)) for n in (9, 14)]
+    model = [r * rng.normal(1.03, 0.04, len(r)) + rng.normal(0, 20, len(r)) for r in ref]
+    errors = [mod.freq_errors(m, r) for m, r in zip(model, ref, strict=True)]
+    best = mod.best_uniform_scale(errors)
+    a, b = np.concatenate([np.sort(m) for m in model]), np.concatenate(ref)
+    scan = np.linspace(0.8, 1.2, 40001)
+    mae = np.abs(scan[:, None] * a - b).mean(axis=1)
+    assert best["mae"] == pytest.approx(mae.min(), abs=1e-3)
+    assert best["factor"] == pytest.approx(scan[mae.argmin()], abs=2e-5)
+    assert best["mae_unscaled"] == pytest.approx(np.abs(a - b).mean())
+    assert best["mae"] < best["mae_unscaled"]
+    exact = mod.best_uniform_scale([mod.freq_errors(1.02 * ref[0], ref[0])])
+    assert exact["factor"] == pytest.approx(1 / 1.02) and exact["mae"] == pytest.approx(0, abs=1e-9)
+    assert mod.best_uniform_scale([]) is None
+
+
 def test_frequency_error_against_geometry_error_is_pearsons_r():
     """The correlation of each (model, molecule)'s frequency MAE with its optimum's RMSD is
     SciPy's Pearson r over the pairs with both; too few or constant: None."""
