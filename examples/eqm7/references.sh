@@ -1,9 +1,12 @@
 #!/usr/bin/env bash
 # DFT references of the study's test molecules in the background, committed as they finish.
 #
-#   bash examples/eqm7/references.sh [NAME ...]      (from the project root; default: every test
-#                                                     molecule of the card and the second test
-#                                                     set's static ones, in `dft_plan`'s order)
+#   bash examples/eqm7/references.sh [NAME ...] [KEY=VALUE ...]
+#       (from the project root; default: every test molecule of the card and the second test
+#       set's static ones, in `dft_plan`'s order; KEY=VALUE: run_study.py overrides, e.g. a
+#       second process on the molecule another one is computing, from its last displacement back:
+#       REFERENCES_LOG=runs/eqm7-references-reverse.log bash examples/eqm7/references.sh NAME \
+#       dft.hessian_reverse=true)
 #
 # Runs `run_study.py dft` (resumable: BFGS step by step, ground state, each field, each Hessian
 # displacement) and every COMMIT_MINUTES (default 20) commits the finished reference files only:
@@ -19,8 +22,15 @@ PY=${PYTHON:-.venv/bin/python}
 REFS=datasets/mini-eqm7/references
 LOG=${REFERENCES_LOG:-runs/eqm7-references.log}  # a second run beside the first: its own log
 mkdir -p runs
-names=""
-if [ $# -gt 0 ]; then names="molecules=[$(IFS=,; echo "$*")]"; fi
+molecules=()
+overrides=()
+for arg in "$@"; do
+  case "$arg" in
+    *=*) overrides+=("$arg") ;;
+    *) molecules+=("$arg") ;;
+  esac
+done
+if [ ${#molecules[@]} -gt 0 ]; then overrides+=("molecules=[$(IFS=,; echo "${molecules[*]}")]"); fi
 
 commit_finished() {
   "$PY" - "$REFS" <<'PYEOF'
@@ -50,7 +60,7 @@ PYEOF
 }
 
 (
-  OMP_WAIT_POLICY=PASSIVE nohup "$PY" examples/eqm7/run_study.py dft dft.keep_heap=true $names >> "$LOG" 2>&1 &
+  OMP_WAIT_POLICY=PASSIVE nohup "$PY" examples/eqm7/run_study.py dft dft.keep_heap=true "${overrides[@]}" >> "$LOG" 2>&1 &
   job=$!
   echo "dft stage: PID $job, log $LOG"
   # kill WATCHER_PID: stop the stage (its sub-steps are written atomically), commit, exit

@@ -666,7 +666,8 @@ def dft_vibrations(study: Study, static: dict, labeler) -> dict:
         delta = float(d.get("hessian_delta", 0.005))
         directions = str(d.get("hessian_directions", "internal"))
         folder = cache / ("vib" if directions == "cartesian" else f"vib-{directions}")
-        hess = finite_difference_hessian(atoms, delta, cache=folder, directions=directions)
+        hess = finite_difference_hessian(atoms, delta, cache=folder, directions=directions,
+                                         reverse=bool(d.get("hessian_reverse", False)))
         return {"hessian": hess, "method": f"{method} (central, {delta:g} Å, {directions}"
                 f" directions)"}
 

@@ -340,6 +340,55 @@ def test_internal_hessian_gives_the_frequencies_with_fewer_force_calls(tmp_path)
         finite_difference_hessian(atoms, cache=cache, directions="internal")
 
 
+def test_a_reverse_process_shares_the_internal_hessian_folder(tmp_path):
+    """A process stopped after a few displacements leaves its files; a second one with
+    ``reverse`` computes the missing ones from the last back (none twice) and both then give
+    the one-process Hessian; the Cartesian scheme refuses ``reverse``."""
+    from ase.build import molecule
+
+    from emlpack.qm.labeling import finite_difference_hessian
+
+    Counting = counting_emt()
+
+    class Stopped(Exception):
+        pass
+
+    class StopsAfter(Counting):
+        limit = 6  # the undisplaced SCF and 5 displacements, then "killed"
+        seen: list[np.ndarray] = []
+
+        def calculate(self, atoms=None, *args, **kwargs):
+            if Counting.calls == StopsAfter.limit:
+                raise Stopped
+            StopsAfter.seen.append(atoms.positions.copy())
+            super().calculate(atoms, *args, **kwargs)
+
+    atoms = molecule("CH3OH")
+    n_disp = 2 * (3 * len(atoms) - 6)
+    atoms.calc = Counting()
+    plain = finite_difference_hessian(atoms, directions="internal")
+    cache = tmp_path / "shared"
+    Counting.calls = 0
+    atoms.calc = StopsAfter()
+    with pytest.raises(Stopped):
+        finite_difference_hessian(atoms, cache=cache, directions="internal")
+    assert len(list(cache.glob("*[+-].npz"))) == 5
+    with np.load(cache / "directions.npz") as d:
+        last = d["positions"] + 0.005 * d["directions"][:, -1].reshape(-1, 3)
+    Counting.calls, StopsAfter.limit, StopsAfter.seen = 0, 10**6, []
+    atoms.calc = StopsAfter()
+    second = finite_difference_hessian(atoms, cache=cache, directions="internal", reverse=True)
+    assert Counting.calls == 1 + n_disp - 5  # only what the first left
+    np.testing.assert_allclose(StopsAfter.seen[1], last, atol=1e-12)  # the last "+" first
+    np.testing.assert_allclose(second, plain, rtol=0, atol=1e-10)
+    Counting.calls = 0
+    first = finite_difference_hessian(atoms, cache=cache, directions="internal")
+    assert Counting.calls == 0
+    np.testing.assert_allclose(first, plain, rtol=0, atol=1e-10)
+    with pytest.raises(ValueError, match="reverse"):
+        finite_difference_hessian(atoms, reverse=True)
+
+
 @pytest.mark.parametrize("escapes", [0, 3])
 def test_preparation_steps_off_a_saddle_point(escapes, monkeypatch):
     """Planar NH3 is a GFN2-xTB saddle (the umbrella inversion) on which BFGS stays, as its

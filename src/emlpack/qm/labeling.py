@@ -194,7 +194,7 @@ def _preparation_calculator(level: str, threads: int | None):
 
 
 def finite_difference_hessian(atoms: Atoms, delta: float = 0.005, cache: str | Path | None = None,
-                              directions: str = "cartesian") -> np.ndarray:
+                              directions: str = "cartesian", reverse: bool = False) -> np.ndarray:
     """Cartesian Hessian (eV/Å^2) by central differences of the forces.
 
     ``directions``:
@@ -207,6 +207,9 @@ def finite_difference_hessian(atoms: Atoms, delta: float = 0.005, cache: str | P
     ``cache``: a folder for the per-displacement force files, so that an interrupted run
     resumes with the displacements it finished (one process per folder); a file left empty or
     cut by a kill is recomputed. Without it the displacements live in a temporary folder.
+    ``reverse`` (internal directions): the displacements from the last one back, so that a
+    second process shares one ``cache`` with a forward one (at most the displacement where
+    they meet is computed twice).
     """
     import json
     import tempfile
@@ -215,10 +218,13 @@ def finite_difference_hessian(atoms: Atoms, delta: float = 0.005, cache: str | P
 
     if directions not in ("cartesian", "internal"):
         raise ValueError(f"directions: 'cartesian' or 'internal', got {directions!r}")
+    if reverse and directions != "internal":
+        raise ValueError("reverse: only with directions='internal' (ASE Vibrations keeps"
+                         " its own order)")
 
     def run(folder: Path) -> np.ndarray:
         if directions == "internal":
-            return internal_hessian(atoms, delta, folder)
+            return internal_hessian(atoms, delta, folder, reverse=reverse)
         folder.mkdir(parents=True, exist_ok=True)
         for f in folder.glob("cache.*.json"):  # an unfinished displacement: compute it again
             try:
@@ -235,7 +241,8 @@ def finite_difference_hessian(atoms: Atoms, delta: float = 0.005, cache: str | P
         return run(Path(tmp) / "vib")
 
 
-def internal_hessian(atoms: Atoms, delta: float, folder: str | Path) -> np.ndarray:
+def internal_hessian(atoms: Atoms, delta: float, folder: str | Path,
+                     reverse: bool = False) -> np.ndarray:
     """Eckart-projected Cartesian Hessian (eV/Å^2) from central differences of the forces of
     ``atoms`` (its calculator) along the vibrational directions only.
 
@@ -243,7 +250,9 @@ def internal_hessian(atoms: Atoms, delta: float, folder: str | Path) -> np.ndarr
     the mass-weighted complement of the rigid translations and rotations) are chosen once and
     saved in ``folder/directions.npz``; each displacement ``x0 -+ delta d_k`` (Å) is one file
     ``folder/KKK-.npz`` / ``KKK+.npz`` (energy, forces), written atomically, so a run resumes
-    where it stopped (also on another machine, with the saved directions). Returns
+    where it stopped (also on another machine, with the saved directions), and a second
+    process with ``reverse`` (the displacements from the last one back) can share the folder
+    with a forward one. Returns
     ``H_c = M^1/2 V A V^T M^1/2``, ``A = V^T M^-1/2 H M^-1/2 V`` (symmetrised): the block of the
     mass-weighted Hessian that the harmonic frequencies come from, with exactly zero
     translations and rotations. Saves 12 of the ``6N + 1`` force calls of the Cartesian scheme
@@ -286,6 +295,9 @@ def internal_hessian(atoms: Atoms, delta: float, folder: str | Path) -> np.ndarr
         with np.load(path) as d:
             return d["forces"].ravel()
 
+    order = [(k, sign) for k in range(dirs.shape[1]) for sign in "-+"]
+    for k, sign in reversed(order) if reverse else order:
+        forces(k, sign)  # every missing displacement first, in this process's order
     # g_k = H d_k; with x_k = d_k / |M^1/2 d_k| (= M^-1/2 v_k): A_jk = x_j . H x_k
     g = np.stack([(forces(k, "-") - forces(k, "+")) / (2.0 * delta)
                   for k in range(dirs.shape[1])], axis=1)
