@@ -29,6 +29,7 @@ def study_run(tmp_path_factory):
     data = tiny_dataset(root / "data")
     overrides = [
         f"data={data}", f"workdir={root / 'work'}", f"results_dir={root / 'results'}",
+        "status=preliminary",  # a final config.yaml would export into the package
         "seeds=[0, 1]",
         "train.model.n_features=8", "train.model.n_filters=8", "train.model.n_rbf=8",
         "train.model.n_interactions=1", "train.training.max_epochs=2", "training.steps=null",
