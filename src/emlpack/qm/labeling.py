@@ -205,8 +205,9 @@ def finite_difference_hessian(atoms: Atoms, delta: float = 0.005, cache: str | P
         block); the rigid-body block is zero instead of measured.
 
     ``cache``: a folder for the per-displacement force files, so that an interrupted run
-    resumes with the displacements it finished (one process per folder); a file left empty or
-    cut by a kill is recomputed. Without it the displacements live in a temporary folder.
+    resumes with the displacements it finished (one process per folder, or two: ``reverse``);
+    a file left empty or cut by a kill is recomputed. Without it the displacements live in a
+    temporary folder.
     ``reverse`` (internal directions): the displacements from the last one back, so that a
     second process shares one ``cache`` with a forward one (at most the displacement where
     they meet is computed twice).
