@@ -113,6 +113,9 @@ class Study:
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.log = log
         self._labeler = labeler
+        #: called with the open store after each stored optimisation step (optimize_job.py:
+        #: the finished steps become immutable shards of datasets/beta-glycine)
+        self.on_stored: Callable | None = None
         self.input = read_structures(cfg["input"])[0].copy(
             energy=None, forces=None, stress=None, info={})
         r = cfg.get("reference", {})
@@ -246,7 +249,7 @@ def stage_optimize(study: Study) -> dict | None:
                            max_steps=int(o.get("max_steps", 100)),
                            symprec=o.get("symprec", 0.01), maxstep=float(o.get("maxstep", 0.1)),
                            store_path=study.store_path, prefix="opt", level=study.level(),
-                           log=study.log)
+                           log=study.log, on_stored=study.on_stored)
     out = {"converged": res.converged, "steps": res.steps, "calculations": res.calculations,
            "max_force": res.max_force, "max_stress_GPa": res.max_stress_gpa,
            "time_s": time.perf_counter() - t0, "lattice_input": lattice(study.input.cell),

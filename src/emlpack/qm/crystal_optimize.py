@@ -35,6 +35,8 @@ from emlpack.units import EV_PER_A3_IN_GPA
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
+    from emlpack.data.store import DatasetStore
+
 Labeler = Callable[..., Structure]
 
 logger = logging.getLogger(__name__)
@@ -148,7 +150,9 @@ def optimize_crystal(labeler: Labeler, structure: Structure, *, fmax: float = 0.
                      max_steps: int = 100, cell: bool = True, symprec: float | None = 0.01,
                      maxstep: float = 0.1, store_path: str | Path | None = None,
                      prefix: str = "opt", level: str = "",
-                     log: Callable[[str], None] | None = None) -> CrystalOptimization:
+                     log: Callable[[str], None] | None = None,
+                     on_stored: Callable[[DatasetStore], None] | None = None,
+                     ) -> CrystalOptimization:
     """BFGS optimisation of positions (and cell, ``cell=True``) at zero field and pressure.
 
     Args:
@@ -164,6 +168,8 @@ def optimize_crystal(labeler: Labeler, structure: Structure, *, fmax: float = 0.
             replayed instead of recomputed.
         level: level-of-theory text for the records.
         log: receives the progress messages (default: this module's logger, INFO).
+        on_stored: called with the open store after each new step is stored (e.g. to turn
+            the finished steps into an immutable shard now and then).
     """
     from ase.filters import FrechetCellFilter
     from ase.optimize import BFGS
@@ -199,6 +205,8 @@ def optimize_crystal(labeler: Labeler, structure: Structure, *, fmax: float = 0.
                 if level:
                     info["level"] = level
                 store.append(s.copy(info=info))
+                if on_stored is not None:
+                    on_stored(store)
         log(f"optimize step {step:3d}{' (stored)' if cached else ''}: E = {s.energy:.6f} eV,"
             f" max force {f:.4f} eV/Å, max stress {sig:.3f} GPa")
 
