@@ -195,3 +195,29 @@ def test_extxyz_round_trip_of_paper_frames(tmp_path):
         np.testing.assert_allclose(b.field, a.field, rtol=1e-12)
         assert b.energy == pytest.approx(a.energy, abs=1e-9)
         np.testing.assert_allclose(b.forces, a.forces, atol=1e-8)
+
+
+def test_float32_compressed_store_is_small_and_reads_back_float64(tmp_path):
+    """Shards of a large campaign: float32 positions and forces, gzip; records come back as
+    float64 within float32 rounding, energies and fields exactly."""
+    structures = [_methane(i) for i in range(200)]
+    sizes = {}
+    for name, kw in {"plain": {}, "packed": {"precision": "float32", "compress": True}}.items():
+        path = tmp_path / f"{name}.h5"
+        with DatasetStore(path, "a", compact=True, **kw) as st:
+            st.append(structures)
+        sizes[name] = path.stat().st_size
+        with DatasetStore(path) as st:
+            back = list(st)
+            assert st.metadata["precision"] == kw.get("precision", "float64")
+        for a, b in zip(back, structures, strict=True):
+            assert a.positions.dtype == np.float64 and a.forces.dtype == np.float64
+            tol = 0 if name == "plain" else 1e-6
+            np.testing.assert_allclose(a.positions, b.positions, rtol=tol, atol=tol)
+            np.testing.assert_allclose(a.forces, b.forces, rtol=tol, atol=tol)
+            np.testing.assert_allclose(a.pairs, b.pairs, rtol=tol, atol=tol)
+            assert a.energy == b.energy and np.array_equal(a.field, b.field)
+    assert sizes["packed"] < 0.5 * sizes["plain"]
+    assert sizes["packed"] / len(structures) < 2000  # bytes per configuration
+    with pytest.raises(ValueError, match="precision"):
+        DatasetStore(tmp_path / "x.h5", "a", precision="float16")

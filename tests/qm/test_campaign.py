@@ -298,3 +298,67 @@ def test_campaign_init_refuses_to_overwrite(tmp_path):
     folder = _tiny_campaign(tmp_path / "c")
     with pytest.raises(Exception, match="exists already"):
         campaign.init_campaign(folder, tmp_path / "unused.csv")
+
+
+def test_pretraining_selection_leaves_out_every_held_out_graph(tmp_path):
+    """A pretraining set lists every allowed QM7 molecule but rows 0-9, the IR molecules and
+    mini-eQM7's validation and test molecules, by molecular graph; its card names the cheap
+    level as not the paper's, and its order is the seeded random list."""
+    path = shared_path("data/qm7_smiles.csv")
+    folder = tmp_path / "qm7-cheap"
+    mols = campaign.init_campaign(folder, path, seed=0, level="pbe0/def2-svpd/grid1",
+                                  exclude=[MINI_EQM7], target={"configurations": 60,
+                                                               "molecules": 10},
+                                  storage={"precision": "float32", "compress": True})
+    graphs = {campaign.graph_key(m["smiles"]) for m in mols}
+    assert len(graphs) == len(mols) > 5000
+    assert not RESERVED & {m["canonical"] for m in mols}
+    held = {campaign.graph_key(m["smiles"]) for m in read_molecule_table(MINI_EQM7)
+            if m["split"] != "train"}
+    held |= {campaign.graph_key(s) for s in campaign.IR_TEST_SMILES.values()}
+    assert len(held) >= 30 and not held & graphs
+    train = {campaign.graph_key(m["smiles"]) for m in read_molecule_table(MINI_EQM7)
+             if m["split"] == "train"}
+    assert len(train & graphs) > 200  # mini-eQM7's training molecules may be pretrained on
+    assert not {f"qm7-{i:04d}" for i in range(10)} & {m["name"] for m in mols}
+    assert {m["split"] for m in mols} == {"train", "val"}
+    settings = campaign.load_settings(folder)
+    assert settings["recipe"]["level"] == "pbe0/def2-svpd/grid1"
+    order, target = campaign.campaign_target(folder)
+    assert [m["name"] for m in order[:5]] == [m["name"] for m in mols[:5]]
+    assert target["prefix"] == 10 and not target["reached"]
+    card = (folder / "README.md").read_text()
+    assert "not the paper's level" in card and "pbe0/def2-svpd/grid1" in card
+    assert "float32, gzip-compressed" in card
+    with pytest.raises(campaign.StoreError, match="exists already"):
+        campaign.init_campaign(folder, path, exclude=[MINI_EQM7])
+
+
+def test_committed_pretraining_sets_hold_no_held_out_molecule():
+    """Every committed pretraining set (``selection: all``) and every one of its shards avoid
+    rows 0-9, the IR molecules and mini-eQM7's validation and test molecules (by graph)."""
+    from rdkit import Chem
+
+    held = {campaign.graph_key(m["smiles"]) for m in read_molecule_table(MINI_EQM7)
+            if m["split"] != "train"}
+    held |= {campaign.graph_key(s) for s in campaign.IR_TEST_SMILES.values()}
+    held |= {campaign.graph_key(s) for s in RESERVED}
+    folders = [p.parent for p in (ROOT / "datasets").glob("*/campaign.yaml")
+               if campaign.load_settings(p.parent).get("selection") == "all"]
+    for folder in folders:
+        rows = read_molecule_table(folder)
+        listed = {m["name"]: m for m in rows}
+        assert not held & {campaign.graph_key(m["smiles"]) for m in rows}, folder
+        assert not {f"qm7-{i:04d}" for i in range(10)} & set(listed)
+        level = campaign.load_settings(folder)["recipe"]["level"]
+        for shard in shard_paths(folder):
+            with DatasetStore(shard) as store:
+                for s in store:
+                    name = s.info["molecule_id"]
+                    if s.info["kind"] == "hydride":
+                        continue
+                    assert name in listed, (shard, name)
+                    mol = Chem.AddHs(Chem.MolFromSmiles(listed[name]["smiles"]))
+                    own = sorted(a.GetAtomicNum() for a in mol.GetAtoms())
+                    assert sorted(s.numbers[: len(own)].tolist()) == own, s.info["key"]
+                    assert s.info["level"] == level != "pbe0/aug-cc-pvtz"

@@ -245,6 +245,11 @@ def test_levels_parse():
     assert not parse_level("pbe/sto-3g/nodf").density_fit
     with pytest.raises(ValueError, match="expected a preset"):
         parse_level("pbe0")
+    cheap = parse_level("pbe0/def2-svpd/grid1/tol1e-09")
+    assert (cheap.basis, cheap.grid_level, cheap.conv_tol, cheap.auxbasis) == (
+        "def2-svpd", 1, 1e-9, None)
+    for level in (cheap, PAPER, Level(basis="6-31g*", density_fit=False, grid_level=2)):
+        assert parse_level(level.name) == level  # a name parses back to its level
 
 
 def test_match_centres_finds_permutation():

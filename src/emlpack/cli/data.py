@@ -132,6 +132,16 @@ def add_campaign(sub: Subparsers) -> None:
     pi.add_argument("--n-large", type=int, default=100,
                     help="molecules with 6-7 heavy atoms to draw (default 100)")
     pi.add_argument("--samples-per-molecule", type=int, default=6, help="default 6")
+    pi.add_argument("--level", default="paper",
+                    help="labeling level (default paper; e.g. pbe0/def2-svpd/grid1)")
+    pi.add_argument("--exclude", action="append", metavar="FOLDER",
+                    help="a pretraining set: every allowed molecule but the validation and"
+                         " test molecules of this campaign (repeatable)")
+    pi.add_argument("--target", type=int, nargs=2, metavar=("CONFIGURATIONS", "MOLECULES"),
+                    help="stop `run` once this many configurations of this many molecules")
+    pi.add_argument("--float32", action="store_true",
+                    help="shards with float32 positions and forces, compressed (~1 kB per"
+                         " configuration)")
     pr = csub.add_parser("run", help="label the next configurations (resumes from the shards)")
     pr.add_argument("folder")
     pr.add_argument("--workers", type=int, default=2,
@@ -163,7 +173,14 @@ def add_campaign(sub: Subparsers) -> None:
             if args.action == "init":
                 mols = campaign.init_campaign(args.folder, args.smiles, seed=args.seed,
                                               n_large=args.n_large,
-                                              samples_per_molecule=args.samples_per_molecule)
+                                              samples_per_molecule=args.samples_per_molecule,
+                                              level=args.level, exclude=args.exclude,
+                                              target=None if args.target is None else {
+                                                  "configurations": args.target[0],
+                                                  "molecules": args.target[1]},
+                                              storage={"precision": "float32",
+                                                       "compress": True}
+                                              if args.float32 else None)
                 print(f"{args.folder}: {len(mols)} molecules listed")
             elif args.action == "run":
                 out = campaign.run_campaign(args.folder, workers=args.workers,

@@ -74,9 +74,17 @@ class DatasetStore:
         mode: ``"r"`` (read only) or ``"a"`` (read and append; created when missing).
         compact: create a new file with small chunks (for stores of tens of records, such
             as campaign shards: ~20 kB instead of ~1 MB when empty).
+        precision: ``"float64"`` or ``"float32"``: the type of the per-particle columns
+            (positions, forces) of a new file; energies, fields, cells and stresses stay
+            float64. Records read back are float64 either way. float32 keeps positions to
+            ~1e-6 Å and forces to ~1e-7 relative: enough for training labels, not for
+            replaying an optimisation bit for bit.
+        compress: create a new file with gzip + shuffle filters (write-once shards: with
+            ``float32`` a small molecule's record takes ~0.5-1 kB instead of ~2-4 kB).
     """
 
-    def __init__(self, path: str | os.PathLike, mode: str = "r", compact: bool = False) -> None:
+    def __init__(self, path: str | os.PathLike, mode: str = "r", compact: bool = False,
+                 precision: str = "float64", compress: bool = False) -> None:
         if mode not in ("r", "a"):
             raise ValueError(f"mode must be 'r' or 'a', got {mode!r}")
         self.path = Path(path)
@@ -86,6 +94,10 @@ class DatasetStore:
         self._key_cache: set[str] | None = None
         self._lock_fd: int | None = None
         self._compact = bool(compact)
+        if precision not in ("float64", "float32"):
+            raise ValueError(f"precision must be 'float64' or 'float32', got {precision!r}")
+        self._precision = precision
+        self._compress = bool(compress)
         if mode == "r" and not self.path.exists():
             raise StoreError(f"{self.path}: no such dataset store")
         self._open()
@@ -96,7 +108,8 @@ class DatasetStore:
 
         if self.mode == "a" and not self.path.exists():
             with atomic_path(self.path) as tmp, h5py.File(tmp, "w") as f:
-                _create_layout(f, chunk_scale=1 / 16 if self._compact else 1.0)
+                _create_layout(f, chunk_scale=1 / 16 if self._compact else 1.0,
+                               precision=self._precision, compress=self._compress)
         try:
             if self.mode == "a":
                 self._lock_writer()
@@ -199,10 +212,10 @@ class DatasetStore:
         p0, npair = int(cols["pair_start"][index]), int(cols["n_pairs"][index])
         out = {
             "numbers": np.array(cores["numbers"][c0:c0 + nc], dtype=np.int64),
-            "positions": np.array(cores["positions"][c0:c0 + nc]),
-            "forces": np.array(cores["forces"][c0:c0 + nc]),
-            "pairs": np.array(pairs["positions"][p0:p0 + npair]),
-            "pair_forces": np.array(pairs["forces"][p0:p0 + npair]),
+            "positions": np.array(cores["positions"][c0:c0 + nc], dtype=np.float64),
+            "forces": np.array(cores["forces"][c0:c0 + nc], dtype=np.float64),
+            "pairs": np.array(pairs["positions"][p0:p0 + npair], dtype=np.float64),
+            "pair_forces": np.array(pairs["forces"][p0:p0 + npair], dtype=np.float64),
             "pbc": bool(cols["pbc"][index]),
         }
         for name in _REC_FLOAT:
@@ -420,10 +433,14 @@ class DatasetStore:
 
 
 # ---------------------------------------------------------------------------------- helpers
-def _create_layout(f: h5py.File, chunk_scale: float = 1.0) -> None:
-    """Empty groups and datasets; ``chunk_scale`` < 1 makes small files (e.g. shards) compact."""
+def _create_layout(f: h5py.File, chunk_scale: float = 1.0, precision: str = "float64",
+                   compress: bool = False) -> None:
+    """Empty groups and datasets; ``chunk_scale`` < 1 makes small files (e.g. shards) compact;
+    ``precision`` is the per-particle columns' float type, ``compress`` adds gzip + shuffle."""
     f.attrs["format"] = FORMAT
     f.attrs["format_version"] = FORMAT_VERSION
+    f.attrs["precision"] = precision
+    filters = {"compression": "gzip", "compression_opts": 6, "shuffle": True} if compress else {}
     for key, unit in UNITS.items():
         f.attrs[f"unit_{key}"] = unit
     for name in ("n_records", "n_cores", "n_pairs", "n_failures", "n_references"):
@@ -433,14 +450,15 @@ def _create_layout(f: h5py.File, chunk_scale: float = 1.0) -> None:
              chunk: int = 1024):
         chunk = max(4, int(chunk * chunk_scale))
         group.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype,
-                             chunks=(chunk, *shape))
+                             chunks=(chunk, *shape), **filters)
 
+    per_particle = np.dtype(precision)
     cores, pairs = f.create_group("cores"), f.create_group("pairs")
     make(cores, "numbers", (), np.int16, 4096)
-    make(cores, "positions", (3,), np.float64, 4096)
-    make(cores, "forces", (3,), np.float64, 4096)
-    make(pairs, "positions", (3,), np.float64, 4096)
-    make(pairs, "forces", (3,), np.float64, 4096)
+    make(cores, "positions", (3,), per_particle, 4096)
+    make(cores, "forces", (3,), per_particle, 4096)
+    make(pairs, "positions", (3,), per_particle, 4096)
+    make(pairs, "forces", (3,), per_particle, 4096)
     rec = f.create_group("records")
     for name, shape in _REC_FLOAT.items():
         make(rec, name, shape, np.float64)

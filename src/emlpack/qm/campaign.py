@@ -43,6 +43,7 @@ from emlpack.data.shards import (
 )
 from emlpack.data.store import DatasetStore, StoreError
 from emlpack.interrupts import terminate_as_interrupt
+from emlpack.qm.levels import PAPER, parse_level
 from emlpack.qm.recipe import (
     LEGACY_FIELD_DISTRIBUTION,
     default_recipe,
@@ -54,6 +55,8 @@ from emlpack.qm.sampling import SamplingError
 log = logging.getLogger(__name__)
 
 CAMPAIGN_FILE = "campaign.yaml"
+#: hand-written measurements (e.g. the level choice) included in the card verbatim
+NOTES_FILE = "notes.md"
 #: the card's words for each field distribution (:data:`emlpack.qm.sampling.FIELD_DISTRIBUTIONS`)
 FIELD_TEXT = {"ball": "uniform in the ball, as the authors' data",
               "magnitude": "uniform direction, magnitude uniform in [0, max]"}
@@ -148,6 +151,73 @@ def select_molecules(csv_path: str | Path, seed: int = 0, n_large: int = 100,
     return molecules
 
 
+def graph_key(smiles: str) -> str:
+    """The molecular graph of ``smiles`` as text: canonical heavy-atom SMILES without stereo
+    (QM7's radical brackets restored), so stereoisomers and tautomer-free spellings of one
+    graph compare equal."""
+    from rdkit import Chem
+
+    return Chem.MolToSmiles(Chem.MolFromSmiles(canonical(smiles)), isomericSmiles=False)
+
+
+def held_out_graphs(folders: list[str | Path]) -> dict[str, str]:
+    """Graphs (:func:`graph_key`) that a pretraining set must not contain, with the reason:
+    QM7 rows 0-9 come in through :func:`select_all_molecules`; here the validation and test
+    molecules of the campaigns in ``folders`` and the IR molecules."""
+    out = {graph_key(s): f"IR test molecule {label}" for label, s in IR_TEST_SMILES.items()}
+    for folder in folders:
+        for m in read_molecule_table(folder):
+            if m["split"] != "train":
+                out.setdefault(graph_key(m["smiles"]), f"{m['split']} molecule {m['name']}"
+                               f" of {Path(folder).name}")
+    return out
+
+
+def select_all_molecules(csv_path: str | Path, exclude: list[str | Path] = (), seed: int = 0,
+                         fractions: tuple[float, float, float] = (0.95, 0.05, 0.0),
+                         ) -> list[dict]:
+    """A pretraining set's molecule list: every sulfur-free closed-shell molecule of the CSV
+    except rows 0-9 (:data:`EXCLUDED_ROWS`), the IR test molecules and the validation and test
+    molecules of the campaigns in ``exclude`` (by molecular graph, :func:`graph_key`), in a
+    seeded random order (so any prefix is a sample of the whole set), split by molecule into
+    ``fractions`` (train, val, test).
+
+    Returns dicts as :func:`select_molecules` (``name`` ``qm7-ROW``, ``source``, ``smiles``,
+    ``n_heavy``, ``split``, ``canonical``).
+    """
+    from rdkit import Chem, RDLogger
+
+    RDLogger.DisableLog("rdApp.*")
+    with Path(csv_path).open() as fh:
+        rows = list(csv.DictReader(fh))
+    banned = {graph_key(rows[i]["smiles"]): EXCLUDED_ROWS[i] for i in EXCLUDED_ROWS
+              if i < len(rows)}
+    banned.update(held_out_graphs(list(exclude)))
+    out, seen = [], set()
+    for i, row in enumerate(rows):
+        if i in EXCLUDED_ROWS:
+            continue
+        mol = Chem.MolFromSmiles(row["smiles"])
+        if mol is None or any(a.GetSymbol() not in ("H", "C", "N", "O") for a in mol.GetAtoms()):
+            continue
+        try:
+            key = graph_key(row["smiles"])
+        except SamplingError:
+            continue  # an open shell
+        if key in banned or key in seen:
+            continue
+        seen.add(key)
+        out.append({"name": f"qm7-{i:04d}", "source": f"row {i}", "smiles": row["smiles"],
+                    "n_heavy": mol.GetNumHeavyAtoms(), "canonical": canonical(row["smiles"])})
+    rng = np.random.default_rng(seed)
+    out = [out[k] for k in rng.permutation(len(out))]
+    f = np.asarray(fractions, dtype=float) / np.sum(fractions)
+    n_val, n_test = int(round(f[1] * len(out))), int(round(f[2] * len(out)))
+    for rank, m in enumerate(out):  # already shuffled: the split by position
+        m["split"] = "val" if rank < n_val else "test" if rank < n_val + n_test else "train"
+    return out
+
+
 def labeling_order(molecules: list[dict]) -> list[dict]:
     """The order in which the campaign labels ``molecules`` (the list's order otherwise).
 
@@ -163,6 +233,13 @@ def labeling_order(molecules: list[dict]) -> list[dict]:
         return (int(not first_block), int(m["split"] == "train"))
 
     return sorted(molecules, key=key)  # stable: the list's order within each group
+
+
+def campaign_order(settings: dict, molecules: list[dict]) -> list[dict]:
+    """The labeling order of a campaign: a pretraining set (``selection: all``) keeps its
+    list's seeded random order (every prefix a sample of the whole, validation included);
+    otherwise :func:`labeling_order`."""
+    return list(molecules) if settings.get("selection") == "all" else labeling_order(molecules)
 
 
 def samples_per_molecule(recipe: dict) -> int:
@@ -212,7 +289,7 @@ def campaign_target(folder: str | Path, settings: dict | None = None,
     molecules = molecules if molecules is not None else read_molecule_table(folder)
     labeled = Counter(k.split("/")[0] for k in finished_keys(folder, failures=False))
     done = Counter(k.split("/")[0] for k in finished_keys(folder, failures=True))
-    return target_prefix(labeling_order(molecules), settings.get("target"),
+    return target_prefix(campaign_order(settings, molecules), settings.get("target"),
                          samples_per_molecule(settings["recipe"]), labeled, done)
 
 
@@ -229,22 +306,39 @@ def campaign_recipe(samples_per_molecule: int = 6, prepare_level: str = "gfn2-xt
 
 def init_campaign(folder: str | Path, smiles_csv: str | Path, seed: int = 0,
                   n_large: int = 100, samples_per_molecule: int = 6,
-                  prepare_level: str = "gfn2-xtb", name: str | None = None) -> list[dict]:
+                  prepare_level: str = "gfn2-xtb", name: str | None = None,
+                  level: str = "paper", exclude: list[str | Path] | None = None,
+                  target: dict | None = None, storage: dict | None = None) -> list[dict]:
     """Write ``molecules.csv`` (list and split) and ``campaign.yaml`` (recipe); refuse to
-    overwrite an existing campaign, whose split must never change."""
+    overwrite an existing campaign, whose split must never change.
+
+    ``exclude`` (campaign folders) makes a pretraining set instead (:func:`select_all_molecules`:
+    every allowed molecule, without those campaigns' validation and test molecules, split
+    95/5 into train and val); ``level`` is the labeling level; ``target`` and ``storage``
+    (:func:`export_shard`) go into campaign.yaml as given."""
     folder = Path(folder)
     if (folder / MOLECULES_FILE).exists():
         raise StoreError(f"{folder}: a campaign exists already ({MOLECULES_FILE}); its list"
                          " and split are fixed")
-    molecules = select_molecules(smiles_csv, seed=seed, n_large=n_large)
+    recipe = campaign_recipe(samples_per_molecule, prepare_level)
+    recipe["level"] = level
+    if exclude is None:
+        molecules = select_molecules(smiles_csv, seed=seed, n_large=n_large)
+        selection = {"n_large": n_large, "fractions": [0.9, 0.05, 0.05]}
+    else:
+        fractions = (0.95, 0.05, 0.0)
+        molecules = select_all_molecules(smiles_csv, exclude, seed=seed, fractions=fractions)
+        selection = {"selection": "all", "exclude": [str(p) for p in exclude],
+                     "fractions": list(fractions)}
     folder.mkdir(parents=True, exist_ok=True)
     settings = {
         "name": name or folder.name,
         "source": Path(smiles_csv).name,
         "seed": seed,
-        "n_large": n_large,
-        "fractions": [0.9, 0.05, 0.05],
-        "recipe": campaign_recipe(samples_per_molecule, prepare_level),
+        **selection,
+        **({"target": target} if target else {}),
+        **({"storage": storage} if storage else {}),
+        "recipe": recipe,
     }
     write_text_atomic(folder / CAMPAIGN_FILE, yaml.safe_dump(settings, sort_keys=False))
     buf = io.StringIO()
@@ -273,12 +367,20 @@ def load_settings(folder: str | Path) -> dict:
 
 
 # ---------------------------------------------------------------------------------- shards
-def export_shard(folder: str | Path, store: DatasetStore, run_info: dict) -> Path | None:
+def export_shard(folder: str | Path, store: DatasetStore, run_info: dict,
+                 storage: dict | None = None) -> Path | None:
     """Move the records and failures of ``store`` that no shard holds into a new shard.
 
     Returns the new shard's path (``None`` when there is nothing new). The shard is written
-    under a temporary name and renamed, so a shard file is always complete.
+    under a temporary name and renamed, so a shard file is always complete. ``storage``:
+    ``precision`` (``float64``, ``float32``) and ``compress`` of the shard file
+    (:class:`DatasetStore`; campaign.yaml's ``storage``), default float64 uncompressed.
     """
+    storage = dict(storage or {})
+    unknown = set(storage) - {"precision", "compress"}
+    if unknown:
+        raise StoreError(f"{folder}: unknown storage settings {sorted(unknown)}"
+                         " (precision, compress)")
     folder = Path(folder)
     have = finished_keys(folder)
     labeled = finished_keys(folder, failures=False)  # a retried failure's label is new
@@ -292,7 +394,7 @@ def export_shard(folder: str | Path, store: DatasetStore, run_info: dict) -> Pat
     final = folder / SHARD_DIR / f"{number:04d}.h5"
     refs = store.references()
     with atomic_path(final) as tmp:
-        with DatasetStore(tmp, "a", compact=True) as shard:
+        with DatasetStore(tmp, "a", compact=True, **storage) as shard:
             shard.append([store.structure(i) for i in new_idx])
             shard.add_failures(new_fail)
             for i in new_idx:
@@ -341,7 +443,8 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
     for other in (p for p in earlier if p.exists()):
         if other != work:  # labels of a run with an earlier recipe: keep the finished ones
             with DatasetStore(other, "a") as store:
-                shard = export_shard(folder, store, {"host": socket.gethostname()})
+                shard = export_shard(folder, store, {"host": socket.gethostname()},
+                                     settings.get("storage"))
             if shard is not None:
                 log.info("campaign %s: %s (earlier recipe) -> %s", folder, other, shard)
                 if commit:
@@ -359,7 +462,7 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
     def flush(store: DatasetStore) -> None:
         now = time.time()
         info = dict(run, started=state["since"], ended=now, wall_s=now - state["since"])
-        shard = export_shard(folder, store, info)
+        shard = export_shard(folder, store, info, settings.get("storage"))
         if shard is None:
             return
         state["since"] = now  # the next shard accounts the wall time from here
@@ -379,7 +482,7 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
 
     order, target = campaign_target(folder, settings, molecules)
     if past_target:
-        order = labeling_order(molecules)
+        order = campaign_order(settings, molecules)
     elif settings.get("target"):
         log.info("campaign %s: target %d configurations of %d molecules: %s (the first %d"
                  " molecules of the order; --past-target labels all %d)", folder,
@@ -481,6 +584,42 @@ def target_lines(folder: str | Path, settings: dict, molecules: list[dict]) -> l
             f" {len(molecules)});"]
 
 
+def level_lines(recipe: dict) -> list[str]:
+    """The card's lines on the labeling level: the paper's, or a cheap one named as such."""
+    level = parse_level(recipe["level"])
+    boys = (f"field, Foster-Boys centres (lowest spread of {recipe.get('boys_starts', 3)}"
+            " stabilised starts);")
+    if level == PAPER:
+        return [f"- labels: {recipe['level']} level = PBE0/aug-cc-pVTZ with density fitting",
+                "  (aug-cc-pVTZ-JKFIT), restricted Kohn-Sham, PySCF; energy, analytic forces"
+                " under the", f"  {boys}"]
+    return [f"- labels: **{level.name}** (DFT grid level {level.grid_level}, SCF tolerance"
+            f" {level.conv_tol:g} Eh), a cheap level for pretraining, preparation and tests:"
+            " **not the paper's level** (PBE0/aug-cc-pVTZ); restricted Kohn-Sham, PySCF"
+            " with density fitting; energy, analytic forces under the", f"  {boys}"]
+
+
+def order_lines(settings: dict, n_split: dict, test: list[str]) -> list[str]:
+    """The card's lines on the molecule order and split."""
+    counts = (f"- split by molecule (fixed before labeling, `{MOLECULES_FILE}`):"
+              f" {n_split['train']} train, {n_split['val']} validation, {n_split['test']} test")
+    if settings.get("selection") == "all":
+        exclude = ", ".join(f"`{e}`" for e in settings.get("exclude", []))
+        return [f"- molecules: every sulfur-free closed-shell molecule of the source except"
+                f" rows 0-9, the IR test molecules and the validation and test molecules of"
+                f" {exclude}, compared by molecular graph (canonical SMILES without stereo),"
+                f" in a random order drawn with seed {settings['seed']} and labeled in that"
+                " order (any prefix is a sample of the whole);", counts + ";"]
+    return ["- order: every molecule with 2-5 heavy atoms, then the IR test molecules missing"
+            f" from the source, then {settings['n_large']} molecules with 6-7 heavy atoms drawn"
+            f" with seed {settings['seed']}; labeled in this order, except that the validation"
+            " and test molecules of each block (2-5 heavy atoms; the rest) are labeled before"
+            " that block's training ones (in the second block since 2026-11-26, after shard"
+            " 0114; the molecules labeled before that are in list order);",
+            counts + "; the IR molecules aziridine and 3-(methylamino)but-2-enal are in test;",
+            f"- test molecules: {', '.join(test)}."]
+
+
 def write_card(folder: str | Path) -> Path:
     """Regenerate ``FOLDER/README.md`` from ``campaign.yaml``, ``molecules.csv`` and shards."""
     folder = Path(folder)
@@ -500,10 +639,7 @@ def write_card(folder: str | Path) -> Path:
         "",
         "## Level and recipe",
         "",
-        f"- labels: {recipe['level']} level = PBE0/aug-cc-pVTZ with density fitting",
-        "  (aug-cc-pVTZ-JKFIT), restricted Kohn-Sham, PySCF; energy, analytic forces under the",
-        "  field, Foster-Boys centres (lowest spread of"
-        f" {recipe.get('boys_starts', 3)} stabilised starts);",
+        *level_lines(recipe),
         f"- preparation (geometry and Hessian for the normal modes only, never labels):"
         f" {recipe['prepare']['level']} (tblite), BFGS to {recipe['prepare']['fmax']} eV/Å;",
         f"- per molecule: {samples} (the paper's 100 : 100 : 150 : 150 proportions), each"
@@ -517,16 +653,7 @@ def write_card(folder: str | Path) -> Path:
         f"- source: `{settings['source']}` (QM7 SMILES), sulfur-free; rows 0-9 never labeled"
         " (0-4 and 7: the authors' DFT data, a second test set; 5, 6, 8, 9: reserved for an"
         " independent check);",
-        "- order: every molecule with 2-5 heavy atoms, then the IR test molecules missing"
-        f" from the source, then {settings['n_large']} molecules with 6-7 heavy atoms drawn"
-        f" with seed {settings['seed']}; labeled in this order, except that the validation"
-        " and test molecules of each block (2-5 heavy atoms; the rest) are labeled before that"
-        " block's training ones (in the second block since 2026-11-26, after shard 0114; the"
-        " molecules labeled before that are in list order);",
-        f"- split by molecule (fixed before labeling, `{MOLECULES_FILE}`): {n_split['train']}"
-        f" train, {n_split['val']} validation, {n_split['test']} test; the IR molecules"
-        " aziridine and 3-(methylamino)but-2-enal are in test;",
-        f"- test molecules: {', '.join(test)}.",
+        *order_lines(settings, n_split, test),
         "",
         "## Counts (measured from the shards)",
         "",
@@ -561,10 +688,20 @@ def write_card(folder: str | Path) -> Path:
     ]
     for k, v in stats["seconds_per_configuration_by_atoms"].items():
         lines.append(f"| {k} | {v['n']} | {v['median']:.0f} |")
+    size = sum(p.stat().st_size for p in shard_paths(folder))
+    per = size / stats["n_configurations"] if stats["n_configurations"] else 0.0
+    storage = settings.get("storage") or {}
+    notes = folder / NOTES_FILE
+    if notes.is_file():  # measurements written by hand (level choice, pilot), kept verbatim
+        lines += ["", notes.read_text().strip()]
     lines += ["", "## Files", "",
               f"`{CAMPAIGN_FILE}` settings and recipe; `{MOLECULES_FILE}` the list and split;",
-              f"`{SHARD_DIR}/NNNN.h5` labels (emlpack HDF5 stores, never rewritten);",
-              "`prepared/NAME.npz` the prepared geometry and Hessian of each molecule.", ""]
+              f"`{SHARD_DIR}/NNNN.h5` labels (emlpack HDF5 stores, never rewritten;"
+              f" {size / 1e6:.1f} MB, {per / 1e3:.1f} kB per configuration; positions and"
+              f" forces {storage.get('precision', 'float64')}"
+              f"{', gzip-compressed' if storage.get('compress') else ''});",
+              "`prepared/NAME.npz` the prepared geometry and Hessian of each molecule"
+              + (f"; `{NOTES_FILE}` the notes above." if notes.is_file() else "."), ""]
     path = folder / "README.md"
     write_text_atomic(path, "\n".join(lines))
     return path

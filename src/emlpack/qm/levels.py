@@ -1,12 +1,19 @@
 """Levels of theory for the reference labeler: the paper's level and quick presets.
 
 A level is written ``xc/basis`` (e.g. ``pbe0/aug-cc-pvtz``), optionally ``xc/basis/auxbasis``
-or ``xc/basis/nodf`` (no density fitting), or given by a preset name from :data:`PRESETS`.
+or ``xc/basis/nodf`` (no density fitting), then optionally ``/gridN`` (DFT grid level N instead
+of 3) and ``/tolX`` (SCF energy tolerance X Hartree instead of 1e-10), e.g.
+``pbe0/def2-svpd/grid1``; or given by a preset name from :data:`PRESETS`. :attr:`Level.name`
+writes this form, so a level's name parses back to the same level.
 """
 
 from __future__ import annotations
 
+import re
 from dataclasses import asdict, dataclass
+
+DEFAULT_GRID_LEVEL = 3
+DEFAULT_CONV_TOL = 1e-10
 
 
 @dataclass(frozen=True)
@@ -28,8 +35,8 @@ class Level:
     basis: str = "aug-cc-pvtz"
     auxbasis: str | None = None
     density_fit: bool = True
-    grid_level: int = 3
-    conv_tol: float = 1e-10
+    grid_level: int = DEFAULT_GRID_LEVEL
+    conv_tol: float = DEFAULT_CONV_TOL
     max_cycle: int = 100
 
     @property
@@ -40,6 +47,10 @@ class Level:
             text += "/nodf"
         elif self.auxbasis:
             text += f"/{self.auxbasis}"
+        if self.grid_level != DEFAULT_GRID_LEVEL:
+            text += f"/grid{self.grid_level}"
+        if self.conv_tol != DEFAULT_CONV_TOL:
+            text += f"/tol{self.conv_tol:g}"
         return text
 
     def as_dict(self) -> dict:
@@ -60,7 +71,8 @@ PRESETS: dict[str, Level] = {
 
 
 def parse_level(spec: str | Level | None) -> Level:
-    """A :class:`Level` from a preset name or an ``xc/basis[/auxbasis|/nodf]`` string."""
+    """A :class:`Level` from a preset name or an ``xc/basis[/auxbasis|/nodf][/gridN][/tolX]``
+    string (:attr:`Level.name` parses back to its level)."""
     if spec is None:
         return PAPER
     if isinstance(spec, Level):
@@ -69,11 +81,22 @@ def parse_level(spec: str | Level | None) -> Level:
     if text in PRESETS:
         return PRESETS[text]
     parts = [p for p in text.split("/") if p]
+    options: dict = {}
+    while len(parts) > 2 and re.fullmatch(r"grid\d+|tol[0-9.e+-]+", parts[-1]):
+        last = parts.pop()
+        try:
+            if last.startswith("grid"):
+                options.setdefault("grid_level", int(last[4:]))
+            else:
+                options.setdefault("conv_tol", float(last[3:]))
+        except ValueError:
+            raise ValueError(f"level {spec!r}: cannot read {last!r}") from None
     if len(parts) not in (2, 3):
         raise ValueError(
-            f"level {spec!r}: expected a preset ({', '.join(PRESETS)}) or 'xc/basis[/auxbasis]'"
+            f"level {spec!r}: expected a preset ({', '.join(PRESETS)}) or"
+            " 'xc/basis[/auxbasis][/gridN][/tolX]'"
         )
     xc, basis = parts[0], parts[1]
     if len(parts) == 3 and parts[2] == "nodf":
-        return Level(xc=xc, basis=basis, density_fit=False)
-    return Level(xc=xc, basis=basis, auxbasis=parts[2] if len(parts) == 3 else None)
+        return Level(xc=xc, basis=basis, density_fit=False, **options)
+    return Level(xc=xc, basis=basis, auxbasis=parts[2] if len(parts) == 3 else None, **options)
