@@ -139,6 +139,15 @@ def polarizability(level: Level, numbers: np.ndarray, positions: np.ndarray) -> 
             "alpha_iso_bohr3": float(np.trace(alpha) / 3)}
 
 
+def complete() -> bool:
+    """Every measurement file exists (the job has nothing left to do)."""
+    molecules = pick_molecules()
+    levels = ["paper", *CANDIDATES]
+    return all((OUT / name / f"{m['name']}-{kind}.json").exists() for m in molecules
+               for name in levels for kind in (("alpha",) if name == "paper"
+                                                else ("alpha", *KINDS)))
+
+
 def run(commit: bool, commit_minutes: float = 25.0) -> None:
     molecules = pick_molecules()
     names = {m["name"] for m in molecules}
@@ -222,7 +231,7 @@ def table() -> dict:
             f"| {name} | {st['xc']}/{st['basis']} | {st['grid_level']} | {st['conv_tol']:g} |"
             f" {st['boys_starts']} | {s['configurations']} | {s['cpu_s_mean']:.1f} |"
             f" {s['force_mae_meV_A']:.0f} | {s['centre_median_A']:.4f} / {s['centre_max_A']:.3f}"
-            f" | {s['dipole_error_D']:.3f} | {'' if e is None else f'{e:.1f}'} |"
+            f" | {s['dipole_error_D']:.3f} | {'' if e is None else f'{e:.2f}'} |"
             f" {'' if a is None else f'{100 * a:+.1f} % ({n_alpha} mol.)'} |")
     write_text_atomic(OUT / "table.md", "\n".join(lines) + "\n")
     return summary

@@ -1,0 +1,154 @@
+#!/usr/bin/env bash
+# The long jobs of the second wave (issues 50, 51, 52). Start them at the beginning of every
+# session, from the project root; each goes on exactly where its committed work stopped.
+#
+#   bash examples/long_jobs.sh           start the jobs that are due and not running, and a
+#                                        watcher that moves on as jobs end
+#   bash examples/long_jobs.sh status    what runs, counts, rates
+#   bash examples/long_jobs.sh stop      stop them; each saves and commits its finished work
+#
+# The jobs, in the brief's order (two cores):
+#   level-choice  the cheap level's measurements (examples/qm7_cheap/level_choice.py; one
+#                 small JSON per measurement, committed every 25 min); ends by itself
+#   bg-optimize   the beta-glycine DFT optimisation (CP2K, one process; every step a record,
+#                 turned into shards of datasets/beta-glycine every 25 min and committed)
+#   pretrain      the QM7-wide cheap-level campaign (emlp campaign run on the folder named in
+#                 examples/qm7_cheap/DATASET once the level is chosen; shards committed every
+#                 25 min); one labeling process while bg-optimize runs, two after it
+# Each job runs on its own copy of src/ and examples/ (/tmp/emlp-JOB), so editing the code does
+# not change a running job. Logs go to runs/*.log; PIDs to runs/long_jobs/JOB.pid.
+set -euo pipefail
+cd "${EMLP_ROOT:-$(dirname "$0")/..}"
+PY=.venv/bin/python
+if [ ! -x "$PY" ]; then
+  echo "long_jobs.sh: no $PY here: run 'make install' (and 'make install-cp2k') first" >&2
+  exit 2
+fi
+PIDS=runs/long_jobs
+mkdir -p "$PIDS"
+PRETRAIN_FILE=examples/qm7_cheap/DATASET  # one line: the pretraining set's folder
+
+running() {  # running JOB: its recorded process is alive
+  local f="$PIDS/$1.pid"
+  [ -f "$f" ] && kill -0 "$(cat "$f")" 2>/dev/null
+}
+
+code_copy() {  # code_copy JOB: a private copy of src/ and examples/ for the job
+  rm -rf "/tmp/emlp-$1" && mkdir -p "/tmp/emlp-$1" && cp -r src examples "/tmp/emlp-$1/"
+}
+
+stop_job() {
+  if running "$1"; then
+    kill "$(cat "$PIDS/$1.pid")" && echo "$1: stopping (it saves and commits its finished work)"
+  fi
+}
+
+level_choice_done() {
+  "$PY" -c "
+import sys; sys.path.insert(0, 'examples/qm7_cheap')
+import level_choice as L
+sys.exit(0 if L.complete() else 1)" 2>/dev/null
+}
+
+bg_optimize_done() {  # the optimisation converged (optimization.json says so)
+  [ -f runs/bg_dzvp400/optimization.json ] && "$PY" -c "
+import json, sys
+sys.exit(0 if json.load(open('runs/bg_dzvp400/optimization.json'))['converged'] else 1)"
+}
+
+start_level_choice() {
+  running level-choice && return 0
+  level_choice_done && return 0
+  code_copy level
+  PYTHONPATH=/tmp/emlp-level/src OMP_NUM_THREADS=1 nohup "$PY" \
+    /tmp/emlp-level/examples/qm7_cheap/level_choice.py --commit >> runs/level-choice.log 2>&1 &
+  echo $! > "$PIDS/level-choice.pid"
+  echo "level-choice: PID $!, log runs/level-choice.log"
+}
+
+start_bg_optimize() {
+  running bg-optimize && return 0
+  bg_optimize_done && return 0
+  command -v cp2k.psmp >/dev/null || { echo "bg-optimize: no CP2K (make install-cp2k)"; return 0; }
+  code_copy bgopt
+  PYTHONPATH=/tmp/emlp-bgopt/src OMP_NUM_THREADS=1 nohup "$PY" \
+    /tmp/emlp-bgopt/examples/beta_glycine/optimize_job.py --commit \
+    --config examples/beta_glycine/config.yaml >> runs/bg-optimize.log 2>&1 &
+  echo $! > "$PIDS/bg-optimize.pid"
+  echo "bg-optimize: PID $!, log runs/bg-optimize.log"
+}
+
+start_pretrain() {  # start_pretrain WORKERS
+  running pretrain && return 0
+  [ -f "$PRETRAIN_FILE" ] || { echo "pretrain: no level chosen yet ($PRETRAIN_FILE)"; return 0; }
+  local data
+  data=$(cat "$PRETRAIN_FILE")
+  code_copy pretrain
+  PYTHONPATH=/tmp/emlp-pretrain/src OMP_WAIT_POLICY=PASSIVE nohup "$PY" -m emlpack.cli \
+    campaign run "$data" --workers "$1" --threads 1 --shard-minutes 25 --commit --quiet \
+    >> runs/pretrain.log 2>&1 &
+  echo $! > "$PIDS/pretrain.pid"
+  echo "$1" > "$PIDS/pretrain.workers"
+  echo "pretrain ($data, $1 workers): PID $!, log runs/pretrain.log"
+}
+
+start_all() {
+  start_bg_optimize
+  if running bg-optimize; then
+    if running level-choice || ! level_choice_done; then start_level_choice; else start_pretrain 1; fi
+  else
+    start_level_choice
+    if running level-choice; then start_pretrain 1; else start_pretrain 2; fi
+  fi
+}
+
+watch_jobs() {  # every 5 minutes: start what is due (one more labeling process when a core frees)
+  while sleep 300; do
+    if running pretrain && [ "$(cat "$PIDS/pretrain.workers" 2>/dev/null)" = 1 ] \
+        && ! running bg-optimize && ! running level-choice; then
+      stop_job pretrain
+      while running pretrain; do sleep 10; done
+    fi
+    start_all >> runs/long_jobs.log 2>&1 || true
+  done
+}
+
+status() {
+  local job
+  for job in level-choice bg-optimize pretrain watcher; do
+    if running "$job"; then echo "$job: running (PID $(cat "$PIDS/$job.pid"))"; else echo "$job: not running"; fi
+  done
+  echo "--- level choice"
+  ls examples/qm7_cheap/level_choice/*/*.json 2>/dev/null | wc -l | sed 's/^/measurement files: /'
+  level_choice_done && echo "complete" || echo "not complete"
+  echo "--- beta-glycine DFT optimisation"
+  grep "optimize step" runs/bg-optimize.log 2>/dev/null | tail -2 || true
+  ls datasets/beta-glycine/shards/*.h5 2>/dev/null | wc -l | sed 's/^/shards: /'
+  if [ -f "$PRETRAIN_FILE" ]; then
+    echo "--- pretraining campaign $(cat "$PRETRAIN_FILE")"
+    PYTHONPATH=src "$PY" -c "
+from emlpack.qm.campaign import campaign_statistics, campaign_target
+d = '$(cat "$PRETRAIN_FILE")'
+s = campaign_statistics(d); t = campaign_target(d)[1]
+print(f\"{s['n_configurations']} configurations of {s['molecules_labeled']} molecules in {s['n_shards']} shards; {s['configurations_per_hour'] or 0:.0f} per hour; target {t['configurations']}/{t['molecules']} reached: {t['reached']}\")"
+  fi
+}
+
+case "${1:-start}" in
+  start)
+    start_all
+    if ! running watcher; then
+      cp "$0" "$PIDS/watcher.sh"
+      EMLP_ROOT=$PWD nohup bash "$PIDS/watcher.sh" watch >> runs/long_jobs.log 2>&1 &
+      echo $! > "$PIDS/watcher.pid"
+      echo "watcher: PID $!, log runs/long_jobs.log"
+    fi
+    ;;
+  watch) watch_jobs ;;
+  stop)
+    stop_job watcher
+    for job in level-choice bg-optimize pretrain; do stop_job "$job"; done
+    ;;
+  status) status ;;
+  *) echo "usage: $0 [start|status|stop]" >&2; exit 2 ;;
+esac
