@@ -349,6 +349,50 @@ def test_init_weights_starts_a_fresh_run_from_a_checkpoint(tmp_path, small_data)
                           [f"training.init_weights={source}", "model.n_features=24"]))
 
 
+def test_pretrain_then_fine_tune_records_the_lineage(tmp_path, small_data):
+    """Pretraining at a cheap level, then a fine-tune at the paper's level from its checkpoint
+    (its own hydride reference, a frozen embedding): the fine-tune's checkpoints carry both
+    stages, the frozen parameters stay at the pretrained values, a resume keeps the lineage, and
+    ``lineage_lines`` (``emlp pretrained``) names both levels; a prefix naming no parameter is
+    refused."""
+    from emlpack.pretrained import lineage_lines
+
+    frames = read_structures(small_data)
+    cheap, paper = tmp_path / "cheap.xyz", tmp_path / "paper.xyz"
+    write_structures(cheap, [f.copy(info={**f.info, "level": "pbe0/def2-svpd/grid1"})
+                             for f in frames])
+    write_structures(paper, [f.copy(info={**f.info, "level": "pbe0/aug-cc-pvtz"})
+                             for f in frames[::2]])
+    pre = train(load_config(_config(tmp_path, cheap, "pre"),
+                            ["training.max_epochs=1"]))
+    names = [n for n, _ in load_model(pre).named_parameters()]
+    embedding = next(n for n in names if n.endswith("embedding.weight"))[: -len(".weight")]
+    overrides = [f"training.init_weights={pre}", "training.max_epochs=1",
+                 f"training.freeze=[{embedding}]"]
+    tuned = train(load_config(_config(tmp_path, paper, "tuned"), overrides))
+    meta = read_checkpoint(tuned.parent / "last.pt")["metadata"]
+    lineage = meta["lineage"]
+    assert [s["levels"] for s in lineage] == [["pbe0/def2-svpd/grid1"], ["pbe0/aug-cc-pvtz"]]
+    assert [s["reference"] for s in lineage] == ["hydrides", "hydrides"]
+    assert [s["n_train"] for s in lineage] == [18, 6]  # 0.75 of 24 and of 12 (rounded)
+    assert lineage[1]["init_weights"] == str(pre) and lineage[1]["freeze"] == [embedding]
+    before = read_checkpoint(pre)["state_dict"]
+    after = read_checkpoint(tuned.parent / "last.pt")["state_dict"]
+    assert torch.equal(before[f"{embedding}.weight"], after[f"{embedding}.weight"])
+    assert any(not torch.equal(before[k], after[k]) for k in before if "embedding" not in k)
+    text = lineage_lines(lineage)
+    assert "trained on" in text[0] and "pbe0/def2-svpd/grid1" in text[0]
+    assert "fine-tuned" in text[1] and "pbe0/aug-cc-pvtz" in text[1] and embedding in text[1]
+    train(load_config(_config(tmp_path, paper, "tuned"), [*overrides[:1],
+                                                         "training.max_epochs=2",
+                                                         overrides[2]]))  # resumes
+    again = read_checkpoint(tuned.parent / "last.pt")["metadata"]["lineage"]
+    assert len(again) == 2 and again[1]["epoch"] == 2
+    with pytest.raises(ValueError, match="names no parameter"):
+        train(load_config(_config(tmp_path, paper, "bad"),
+                          [f"training.init_weights={pre}", "training.freeze=[nothing]"]))
+
+
 def test_the_step_differentiates_every_parameter_and_nothing_else(tmp_path, small_data):
     """``Trainer._train_epoch`` differentiates the loss with respect to the optimizer's
     parameters only (``backward(inputs=...)``, which skips the positions' second derivatives):

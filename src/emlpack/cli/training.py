@@ -153,8 +153,18 @@ def add_pretrained(sub: Subparsers) -> None:
 
         print(model_card(args.name))
         ensemble = load_pretrained(args.name)
+        from emlpack.nn.checkpoint import read_checkpoint
+        from emlpack.pretrained import lineage_lines
+
+        lineages = []
         for m in ensemble.members:
             print(f"member: {m.source}")
+            lineage = (read_checkpoint(m.source).get("metadata") or {}).get("lineage")
+            if lineage not in lineages:
+                lineages.append(lineage)
+        for lineage in lineages:  # the members' lineages, each once
+            for line in lineage_lines(lineage):
+                print(line)
         t = ensemble.spread_thresholds
         print(f"spread warnings above {t.energy:.4g} eV/atom (energy), {t.forces:.4g} eV/Å"
               f" (largest force component): {t.basis}")

@@ -82,6 +82,24 @@ def model_card(name: str, root: Path | None = None) -> str:
     return path.read_text()
 
 
+def lineage_lines(lineage: list[dict] | None) -> list[str]:
+    """A checkpoint's lineage (``metadata["lineage"]``, written by the trainer: the earlier
+    stages, e.g. a pretraining at a cheap level, then the last run) as readable lines."""
+    if not lineage:
+        return ["lineage: not recorded (trained before lineage was recorded, or not by"
+                " `emlp train`)"]
+    out = []
+    for k, s in enumerate(lineage):
+        what = "trained" if k == 0 and not s.get("init_weights") else "fine-tuned"
+        frozen = f", frozen {', '.join(s['freeze'])}" if s.get("freeze") else ""
+        steps = "" if s.get("step") is None else f", {s['step']} steps"
+        out.append(f"stage {k + 1}: {what} on {s.get('data_path')} ({s.get('n_train')} training"
+                   f" configurations, level {', '.join(s.get('levels') or ['unknown'])},"
+                   f" reference {s.get('reference', 'unknown')}), {s.get('epoch')} epochs"
+                   f"{steps}{frozen}")
+    return out
+
+
 def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: str,
                       dtype: torch.dtype | None = None, notice: str | None = None,
                       data_path: str | None = None, domain: dict | None = None,
@@ -106,7 +124,8 @@ def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: s
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    keep = ("reference", "elements", "max_heavy_atoms", "data_path", "split", "epoch", "val")
+    keep = ("reference", "elements", "max_heavy_atoms", "data_path", "split", "epoch", "val",
+            "lineage")
     written = []
     for k, path in enumerate(checkpoints):
         meta = read_checkpoint(path).get("metadata", {}) or {}

@@ -54,8 +54,11 @@ DEFAULTS: dict = {
         "eval_batch_size": 64,
         # a checkpoint (best.pt / last.pt of an earlier run) whose weights start a fresh run
         # (fine-tuning, e.g. on a data set that grew): same model config; new optimizer and
-        # schedule; ignored when the run resumes from its own last.pt
+        # schedule; ignored when the run resumes from its own last.pt. The checkpoint's lineage
+        # (what it was trained on) is carried into this run's checkpoints
         "init_weights": None,
+        # parameter-name prefixes kept fixed (e.g. [schnet.embedding] in a fine-tune)
+        "freeze": [],
     },
     "output": {
         "dir": "runs/emlp",

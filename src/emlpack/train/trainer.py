@@ -157,9 +157,14 @@ class Trainer:
         self.model_config = ModelConfig.from_dict(cfg["model"])
         torch.manual_seed(t["seed"])
         self.model = EMLP(self.model_config).to(self.dtype).to(self.device)
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=t["lr"], eps=t["adam_eps"])
+        frozen = self._frozen_names(t.get("freeze") or [])
+        self.optimizer = torch.optim.Adam(
+            [p for n, p in self.model.named_parameters() if n not in frozen], lr=t["lr"],
+            eps=t["adam_eps"])
         #: what the loss is differentiated with respect to (:meth:`_train_epoch`)
         self.trained_parameters = [p for g in self.optimizer.param_groups for p in g["params"]]
+        #: earlier stages of this model (:meth:`init_weights`), then this run (:meth:`metadata`)
+        self.lineage: list[dict] = []
         self.batch_size = t["batch_size"]
         self.steps_per_epoch = len(self._epoch_batches(0))
         decay_steps = max(1e-12, self.steps_per_epoch * float(t["decay_epochs"]))
@@ -217,14 +222,42 @@ class Trainer:
         return self._val_batches
 
     # ------------------------------------------------------------------ state
+    def _frozen_names(self, prefixes: list[str]) -> set[str]:
+        """Names of the parameters that ``training.freeze`` keeps fixed (each prefix must match
+        at least one parameter)."""
+        names = [n for n, _ in self.model.named_parameters()]
+        out = set()
+        for prefix in prefixes:
+            hit = {n for n in names if n == prefix or n.startswith(f"{prefix}.")}
+            if not hit:
+                raise ConfigError(f"training.freeze: {prefix!r} names no parameter (e.g."
+                                  f" {', '.join(names[:3])})")
+            out |= hit
+        if len(out) == len(names):
+            raise ConfigError("training.freeze: every parameter is frozen")
+        return out
+
+    def stage(self) -> dict:
+        """This run as a lineage entry: data, its levels of theory, size, the starting
+        checkpoint, frozen parameters, epoch and step."""
+        levels = sorted({str(self.structures[int(i)].info.get("level", "")) or "unknown"
+                         for i in self.split["train"]})
+        t = self.cfg["training"]
+        return {"data_path": str(self.cfg["data"]["path"]), "levels": levels,
+                "n_train": int(len(self.split["train"])), "reference": self.reference.kind,
+                "init_weights": str(t["init_weights"]) if t["init_weights"] else None,
+                "freeze": list(t.get("freeze") or []), "epoch": self.epoch, "step": self.step}
+
     def metadata(self, **extra) -> dict:
-        """Checkpoint metadata: reference, config, data path and size, split, training domain, epoch
-        and ``extra`` (e.g. ``val`` metrics, ``training`` state)."""
+        """Checkpoint metadata: reference, config, data path and size, split, training domain,
+        epoch, lineage (the earlier stages, then this run) and ``extra`` (e.g. ``val`` metrics,
+        ``training`` state)."""
         return {"reference": self.reference.to_metadata(), "config": self.cfg,
                 "data_path": str(self.cfg["data"]["path"]),
                 "n_structures": len(self.structures),
                 "split": {k: v.tolist() for k, v in self.split.items()},
-                **self._domain(), "epoch": self.epoch, **extra}
+                **self._domain(), "epoch": self.epoch,
+                "lineage": [*self.lineage, self.stage()], **extra}
 
     def _domain(self) -> dict:
         """Elements and largest molecule of the training split (computed once)."""
@@ -261,6 +294,7 @@ class Trainer:
                 f" now holds {len(self.structures)}; resume on the same data (e.g. a fixed set of"
                 " shards), or start afresh (--restart / another output.dir)")
         state = payload["metadata"]["training"]
+        self.lineage = list(payload["metadata"].get("lineage", [])[:-1])  # without this run
         self.model.load_state_dict(payload["state_dict"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
@@ -271,8 +305,15 @@ class Trainer:
 
     def init_weights(self, path: str | Path) -> None:
         """Start from the weights of the checkpoint ``path`` (its model config must equal this
-        run's); optimizer, schedule and counters start afresh."""
+        run's); optimizer, schedule and counters start afresh (a fine-tune: this run's data and
+        reference, e.g. the paper's level after pretraining at a cheap one); the checkpoint's
+        lineage becomes this run's history."""
         payload = read_checkpoint(path)
+        meta = payload.get("metadata") or {}
+        self.lineage = list(meta.get("lineage") or [
+            {"data_path": meta.get("data_path"), "levels": ["unknown"],
+             "n_train": len((meta.get("split") or {}).get("train", [])),
+             "epoch": meta.get("epoch"), "note": "written before lineage was recorded"}])
         saved = ModelConfig.from_dict(payload["config"])
         if saved != self.model_config:
             diff = sorted(k for k, v in saved.to_dict().items()
