@@ -12,9 +12,13 @@
 #                 small JSON per measurement, committed every 25 min); ends by itself
 #   bg-optimize   the beta-glycine DFT optimisation (CP2K, one process; every step a record,
 #                 turned into shards of datasets/beta-glycine every 25 min and committed)
+#   val-refs      the DFT polarizabilities of mini-eQM7's validation molecules
+#                 (examples/eqm7/validation_references.py; files committed every 25 min), on
+#                 bg-optimize's core once that has converged
 #   pretrain      the QM7-wide cheap-level campaign (emlp campaign run on the folder named in
 #                 examples/qm7_cheap/DATASET once the level is chosen; shards committed every
-#                 25 min); one labeling process while bg-optimize runs, two after it
+#                 25 min) on the cores the others leave: one labeling process, two when no
+#                 other job runs
 # Each job runs on its own copy of src/ and examples/ (/tmp/emlp-JOB), so editing the code does
 # not change a running job. Logs go to runs/*.log; PIDs to runs/long_jobs/JOB.pid.
 set -euo pipefail
@@ -78,6 +82,26 @@ start_bg_optimize() {
   echo "bg-optimize: PID $!, log runs/bg-optimize.log"
 }
 
+val_refs_done() {
+  [ "$(ls datasets/mini-eqm7/references/pbe0_aug-cc-pvtz/validation/*.json 2>/dev/null | wc -l)" -ge 15 ]
+}
+
+start_val_refs() {
+  running val-refs && return 0
+  val_refs_done && return 0
+  code_copy valrefs
+  PYTHONPATH=/tmp/emlp-valrefs/src OMP_NUM_THREADS=1 nohup "$PY" \
+    /tmp/emlp-valrefs/examples/eqm7/validation_references.py --commit >> runs/val-refs.log 2>&1 &
+  echo $! > "$PIDS/val-refs.pid"
+  echo "val-refs: PID $!, log runs/val-refs.log"
+}
+
+others() {  # how many of the other jobs run (each takes one core)
+  local n=0 job
+  for job in level-choice bg-optimize val-refs; do running "$job" && n=$((n + 1)); done
+  echo "$n"
+}
+
 start_pretrain() {  # start_pretrain WORKERS
   running pretrain && return 0
   [ -f "$PRETRAIN_FILE" ] || { echo "pretrain: no level chosen yet ($PRETRAIN_FILE)"; return 0; }
@@ -94,18 +118,17 @@ start_pretrain() {  # start_pretrain WORKERS
 
 start_all() {
   start_bg_optimize
-  if running bg-optimize; then
-    if running level-choice || ! level_choice_done; then start_level_choice; else start_pretrain 1; fi
-  else
-    start_level_choice
-    if running level-choice; then start_pretrain 1; else start_pretrain 2; fi
-  fi
+  start_level_choice
+  running bg-optimize || start_val_refs
+  local free=$((2 - $(others)))
+  [ "$free" -ge 1 ] && start_pretrain "$free"
+  return 0
 }
 
 watch_jobs() {  # every 5 minutes: start what is due (one more labeling process when a core frees)
   while sleep 300; do
     if running pretrain && [ "$(cat "$PIDS/pretrain.workers" 2>/dev/null)" = 1 ] \
-        && ! running bg-optimize && ! running level-choice; then
+        && [ "$(others)" = 0 ] && val_refs_done; then
       stop_job pretrain
       while running pretrain; do sleep 10; done
     fi
@@ -115,7 +138,7 @@ watch_jobs() {  # every 5 minutes: start what is due (one more labeling process 
 
 status() {
   local job
-  for job in level-choice bg-optimize pretrain watcher; do
+  for job in level-choice bg-optimize val-refs pretrain watcher; do
     if running "$job"; then echo "$job: running (PID $(cat "$PIDS/$job.pid"))"; else echo "$job: not running"; fi
   done
   echo "--- level choice"
@@ -124,6 +147,7 @@ status() {
   echo "--- beta-glycine DFT optimisation"
   grep "optimize step" runs/bg-optimize.log 2>/dev/null | tail -2 || true
   ls datasets/beta-glycine/shards/*.h5 2>/dev/null | wc -l | sed 's/^/shards: /'
+  echo "--- validation references: $(ls datasets/mini-eqm7/references/pbe0_aug-cc-pvtz/validation/*.json 2>/dev/null | wc -l) of 15"
   if [ -f "$PRETRAIN_FILE" ]; then
     echo "--- pretraining campaign $(cat "$PRETRAIN_FILE")"
     PYTHONPATH=src "$PY" -c "
@@ -147,7 +171,7 @@ case "${1:-start}" in
   watch) watch_jobs ;;
   stop)
     stop_job watcher
-    for job in level-choice bg-optimize pretrain; do stop_job "$job"; done
+    for job in level-choice bg-optimize val-refs pretrain; do stop_job "$job"; done
     ;;
   status) status ;;
   *) echo "usage: $0 [start|status|stop]" >&2; exit 2 ;;

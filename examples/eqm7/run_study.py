@@ -533,8 +533,8 @@ def dft_static(study: Study, row: dict, labeler) -> dict:
     from ase import Atoms
     from ase.optimize import BFGS
 
+    from emlpack.qm.finite_field import FiniteFieldError, finite_field_response
     from emlpack.qm.labeling import labeler_calculator
-    from emlpack.units import COULOMB_EV_A, FIELD_AU_IN_V_PER_A, POLARIZABILITY_A3_IN_BOHR3
 
     d = study.cfg.get("dft", {})
     cache = study.dft_dir / row["name"]
@@ -604,27 +604,11 @@ def dft_static(study: Study, row: dict, labeler) -> dict:
 
     g = _cached(cache / "ground.npz", ground)
     f_au = float(d.get("field_au", 1e-3))
-    f_v = f_au * FIELD_AU_IN_V_PER_A
-    dip = np.zeros((3, 2, 3))
-    frc = np.zeros((3, 2, len(numbers), 3))
-    for a in range(3):
-        for k, sign in enumerate((1.0, -1.0)):
-            field = np.zeros(3)
-            field[a] = sign * f_v
-
-            def perturbed(field=field):
-                r = labeler(numbers, pos, field=field, forces=True, localize=False)
-                if not r.ok:
-                    raise RuntimeError(f"{row['name']}: DFT failed under field {field}: {r.error}")
-                return {"dipole": r.dipole, "forces": r.forces}
-
-            p = _cached(cache / f"field_{'xyz'[a]}{'+-'[k]}.npz", perturbed)
-            dip[a, k], frc[a, k] = p["dipole"], p["forces"]
-    # alpha_ij = d mu_i / d F_j (e Å²/V); Born charges dmu_a/dR_ib = dF_ib/dE_a (e)
-    alpha = ((dip[:, 0] - dip[:, 1]) / (2 * f_v)).T
-    alpha = 0.5 * (alpha + alpha.T)
-    born = ((frc[:, 0] - frc[:, 1]) / (2 * f_v)).reshape(3, -1)
-    to_bohr3 = COULOMB_EV_A * POLARIZABILITY_A3_IN_BOHR3
+    try:
+        resp = finite_field_response(labeler, numbers, pos, f_au, forces=True, cache=cache)
+    except FiniteFieldError as exc:
+        raise RuntimeError(f"{row['name']}: DFT failed: {exc}") from None
+    alpha, born = resp.polarizability_bohr3, resp.born_charges
     return {
         "name": row["name"], "smiles": row["smiles"], "level": labeler.level.name,
         "start_geometry": origin, "numbers": numbers.tolist(), "positions": pos.tolist(),
@@ -634,8 +618,8 @@ def dft_static(study: Study, row: dict, labeler) -> dict:
         "energy": float(g["energy"]), "max_force_at_optimum": float(np.abs(g["forces"]).max()),
         "pairs": g["pairs"].tolist(), "dipole_e_A": g["dipole"].tolist(),
         "field_step_au": f_au,
-        "polarizability_bohr3": (alpha * to_bohr3).tolist(),
-        "polarizability_isotropic_bohr3": float(np.trace(alpha) * to_bohr3 / 3),
+        "polarizability_bohr3": alpha.tolist(),
+        "polarizability_isotropic_bohr3": float(np.trace(alpha) / 3),
         "born_charges_e": born.tolist(),
         "wall_s_this_call": time.perf_counter() - t0,
     }
