@@ -76,7 +76,7 @@ start_bg_optimize() {
   command -v cp2k.psmp >/dev/null || { echo "bg-optimize: no CP2K (make install-cp2k)"; return 0; }
   code_copy bgopt
   PYTHONPATH=/tmp/emlp-bgopt/src OMP_NUM_THREADS=1 nohup "$PY" \
-    /tmp/emlp-bgopt/examples/beta_glycine/optimize_job.py --commit \
+    /tmp/emlp-bgopt/examples/beta_glycine/campaign_job.py optimize --commit \
     --config examples/beta_glycine/config.yaml >> runs/bg-optimize.log 2>&1 &
   echo $! > "$PIDS/bg-optimize.pid"
   echo "bg-optimize: PID $!, log runs/bg-optimize.log"

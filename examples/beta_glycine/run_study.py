@@ -156,15 +156,31 @@ class Study:
         """Store written by labeling shard ``shard`` (one writer per store)."""
         return self.store_path if shard == 0 else self.workdir / f"labels.{shard}.h5"
 
+    @property
+    def dataset(self) -> Path | None:
+        """The committed data set (``dataset`` of config.yaml: immutable shards written by
+        campaign_job.py), read by every stage beside the working stores; None: none."""
+        d = self.cfg.get("dataset")
+        return Path(d) if d else None
+
     def stores(self) -> list[Path]:
-        """Every labeling store of the run (the main one and the shards')."""
-        return sorted(p for p in self.workdir.glob("labels*.h5") if p.is_file())
+        """The committed shards (``dataset``), then every labeling store of the run (the main
+        one and the shards')."""
+        from emlpack.data.shards import shard_paths
+
+        shards = shard_paths(self.dataset) if self.dataset is not None else []
+        return [*shards, *sorted(p for p in self.workdir.glob("labels*.h5") if p.is_file())]
 
     def records(self) -> list[Structure]:
-        out = []
+        """Every labeled record, each key once (a record in a shard and in a working store:
+        the shard's)."""
+        out, seen = [], set()
         for path in self.stores():
             with DatasetStore(path, "r") as store:
-                out += list(store)
+                for s in store:
+                    if s.info.get("key") not in seen:
+                        seen.add(s.info.get("key"))
+                        out.append(s)
         return out
 
     def failures(self) -> list[dict]:
@@ -308,6 +324,8 @@ def stage_label(study: Study, until: dt.datetime | None = None,
             store.append(out)
             n_new += 1
             study.log(f"label: {t.key} done in {wall:.1f} s")
+            if study.on_stored is not None:
+                study.on_stored(store)
         n_total = len(store)
     return {"new": n_new, "failed": n_fail, "stored": n_total}
 
