@@ -45,7 +45,8 @@ def test_study_runs_end_to_end_and_resumes(tmp_path, fake):
     write_structures(xyz, [s])
     cfg = study_mod.load_config(ROOT / "examples" / "beta_glycine" / "config.yaml", [
         f"input={xyz}", f"workdir={tmp_path / 'run'}", f"results_dir={tmp_path / 'out'}",
-        f"dataset={tmp_path / 'dataset'}", "molecule_id=water-crystal", "reference.strain_step=0.001",
+        f"dataset={tmp_path / 'dataset'}", "molecule_id=water-crystal",
+        "reference.strain_step=0.001",
         "reference.field_step_au=0.0001",  # the spring model is very nonlinear in strong fields
         "rounds=[{round: 0, field: 3, stress: 3, sigma: 0.02, max_strain: 0.01,"
         " max_field_au: 0.001}, {round: 1, field: 2, stress: 2, hessian: model,"
