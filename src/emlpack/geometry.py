@@ -239,6 +239,14 @@ def schur_complement(hessian: ArrayLike, keep: np.ndarray, eliminate: np.ndarray
     return h_kk - h_ke @ np.linalg.solve(h_ee, h_ke.T)
 
 
+#: central finite differences by number of points: (offsets in steps, weights) with
+#: f'(0) ~ sum_k w_k f(o_k h) / h, error O(h^2) (2 points) or O(h^4) (4 points)
+CENTRAL_DIFFERENCES = {
+    2: (np.array([-1.0, 1.0]), np.array([-0.5, 0.5])),
+    4: (np.array([-2.0, -1.0, 1.0, 2.0]), np.array([1.0, -8.0, 8.0, -1.0]) / 12.0),
+}
+
+
 # ---------------------------------------------------------------------- cutoff
 def cosine_cutoff(r: _ArrayT, cutoff: float, transition: float, xp: ModuleType = np) -> _ArrayT:
     """1 below ``cutoff - transition``, ``(1 + cos(pi x)) / 2`` with

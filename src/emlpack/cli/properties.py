@@ -1,12 +1,11 @@
-"""``emlp optimize``, ``ir``, ``polarizability``, ``response``: a structure in, relaxed as
-asked, a property out. Every check runs before the pair guess and the relaxation; whatever
-looks broken afterwards (bonding changed, a saddle point, a negative stiffness eigenvalue, a
-failed pair relaxation) is printed as a warning, recorded in the JSON output
+"""``emlp optimize``, ``ir``, ``raman``, ``polarizability``, ``response``: a structure in,
+relaxed as asked, a property out. Every check runs before the pair guess and the relaxation;
+whatever looks broken afterwards (bonding changed, a saddle point, a negative stiffness
+eigenvalue, a failed pair relaxation) is printed as a warning, recorded in the JSON output
 (``"warnings": [...]``) and turns the summary into "converged with warnings"."""
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -42,6 +41,9 @@ if TYPE_CHECKING:
 RELAX_LEVELS = ("none", "pairs", "positions", "cell")
 #: warn when the ensemble's isotropic polarizability spread exceeds this fraction of its mean
 POLARIZABILITY_SPREAD_WARNING = 0.1
+#: ``emlp raman --step`` (Å): ``emlpack.properties.raman.STEP`` (tested equal; the parser is
+#: built without importing torch)
+RAMAN_STEP = 2e-3
 
 
 def _common(p: argparse.ArgumentParser, relax_default: str, output_default: str,
@@ -320,81 +322,109 @@ def add_optimize(sub: Subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _spectrum_arguments(p: argparse.ArgumentParser, kind: str) -> None:
+    """``--plot``, ``--fwhm``, ``--reference`` and ``--reference-label`` of ``ir`` and
+    ``raman``."""
+    unit = "km/mol" if kind == "ir" else "Å^4/amu"
+    p.add_argument("--plot", metavar="FILE.png",
+                   help="plot of the spectrum: the broadened spectrum over its sticks, an"
+                   " ensemble's spread as a band, the reference overlaid")
+    p.add_argument("--fwhm", type=float, default=10.0, help="Lorentzian FWHM, cm^-1")
+    p.add_argument("--reference", metavar="FILE",
+                   help=f"reference spectrum to compare with: a JSON written by emlp {kind}"
+                   " (or a DFT reference of the same keys), a two-column CSV or text table"
+                   f" (cm^-1, {unit}), or an extxyz frame with a Cartesian Hessian (info"
+                   " 'hessian', eV/Å^2; docs/raman.md)")
+    p.add_argument("--reference-label", metavar="TEXT",
+                   help="the reference's name in the plot (default: from the file)")
+
+
+def _line_spectrum(args: argparse.Namespace, kind: str) -> int:
+    """``emlp ir`` and ``emlp raman``: every member's spectrum, their mean and spread, JSON and
+    the plot."""
+    from emlpack.properties.spectra import ensemble_modes, spectrum_curves, write_spectrum_plot
+    from emlpack.properties.spectrum_reference import read_reference_spectrum
+
+    positive(args.fwhm, "--fwhm")
+    if kind == "raman":
+        positive(args.step, "--step")
+    ref = (read_reference_spectrum(args.reference, kind, args.reference_label)
+           if args.reference else None)
+    prep = prepare(args, False, f"emlp {kind}")
+    t0 = time.perf_counter()
+    if kind == "ir":
+        from emlpack.properties.ir import ir_spectrum
+
+        prep.log.progress("extended Hessian and normal modes ...")
+        spectra = [ir_spectrum(m.model, s) for _, m, s in prep.each()]
+        lines = [(x.frequencies, x.intensities) for x in spectra]
+    else:
+        from emlpack.properties.raman import raman_spectrum
+
+        prep.log.progress("extended Hessian, normal modes and polarizability derivatives ...")
+        spectra = [raman_spectrum(m.model, s, step=args.step) for _, m, s in prep.each()]
+        lines = [(x.frequencies, x.activities) for x in spectra]
+    for k, x in enumerate(spectra):
+        if prep.ensemble:
+            prep.log(f"{prep.labels[k]} ({prep.members[k].source}):")
+        prep.log(x.text())
+    prep.log(f"({'IR' if kind == 'ir' else 'Raman'} spectrum: {time.perf_counter() - t0:.2f} s)")
+    for k, x in enumerate(spectra):
+        n_imag = int(np.sum(x.frequencies < 0))
+        if n_imag:
+            who = f"{prep.labels[k]}: " if prep.ensemble else ""
+            prep.warnings.append(f"{who}{n_imag} imaginary mode(s) (lowest"
+                                 f" {x.frequencies.min():.1f} cm^-1): not a minimum")
+    curves = spectrum_curves(lines, kind, args.fwhm, ref)
+    data = spectra[0].as_dict(args.fwhm)
+    if prep.ensemble:  # modes by rank (ascending wavenumber), mean and spread
+        tables = [x.mode_table() for x in spectra]
+        signed = "polarizability_derivatives_A2_per_sqrt_amu"  # a mode's sign is arbitrary
+        data.pop(signed, None)
+        data.update(ensemble_modes(tables, exclude=(signed,)))
+        if kind == "raman":
+            data["polarizability_e_A2_per_V"] = np.mean(
+                [x.polarizability for x in spectra], axis=0).tolist()
+        data["members"] = [{"source": m.source, **x} for m, x in
+                           zip(prep.members, tables, strict=True)]
+        data["spectrum"] = f"mean of the {len(spectra)} models' broadened spectra"
+        std = np.asarray(data["frequencies_cm-1_std"], float)
+        prep.log(f"ensemble: wavenumber spread (std) median {np.median(std):.1f}, largest"
+                 f" {std.max():.1f} cm^-1")
+    data.update(curves.as_dict())
+    if ref is not None:
+        data["reference_file"] = str(args.reference)
+        data["reference_label"] = ref.label
+        data["reference_frequencies_cm-1"] = ref.frequencies.tolist()
+        if ref.heights is not None:
+            data[f"reference_{curves.kind.key}"] = ref.heights.tolist()
+    if args.plot:
+        write_spectrum_plot(args.plot, curves, title=prep.where + (
+            f" ({len(spectra)}-model mean)" if prep.ensemble else ""))
+    write_json(args.output, prep.record(args, {**prep.energies(), **data}))
+    prep.log(f"wrote {args.output}" + (f" and {args.plot}" if args.plot else ""))
+    prep.log(prep.summary())
+    return 0
+
+
 def add_ir(sub: Subparsers) -> None:
     """Register ``emlp ir``: harmonic IR spectrum of a molecule (JSON, optional PNG)."""
     p = add_parser(sub, "ir", "harmonic IR spectrum of a molecule (JSON, optional PNG)")
     _common(p, "positions", "ir.json", "JSON file of the spectrum")
-    p.add_argument("--plot", metavar="FILE.png", help="PNG plot of the spectrum")
+    _spectrum_arguments(p, "ir")
     p.add_argument("--png", dest="plot", help=argparse_suppress())
-    p.add_argument("--fwhm", type=float, default=10.0, help="Lorentzian FWHM, cm^-1")
-    p.add_argument("--reference", help="reference spectrum: text columns cm^-1, km/mol")
-
-    def run(args: argparse.Namespace):
-        import json
-
-        from emlpack.calculators.ensemble import member_spread
-        from emlpack.properties.ir import ir_spectrum, write_ir
-
-        positive(args.fwhm, "--fwhm")
-        ref = None
-        if args.reference:
-            ref = _read_reference(args.reference)
-        prep = prepare(args, False, "emlp ir")
-        t0 = time.perf_counter()
-        prep.log.progress("extended Hessian and normal modes ...")
-        spectra = [ir_spectrum(m.model, s) for _, m, s in prep.each()]
-        spec = spectra[0]
-        if prep.ensemble:  # the mean spectrum: every member's lines with 1/N of the intensity
-            n = len(spectra)
-            spec = dataclasses.replace(
-                spec, frequencies=np.concatenate([x.frequencies for x in spectra]),
-                intensities=np.concatenate([x.intensities for x in spectra]) / n)
-            for k, x in enumerate(spectra):
-                prep.log(f"{prep.labels[k]} ({prep.members[k].source}):")
-                prep.log(x.text())
-        else:
-            prep.log(spec.text())
-        prep.log(f"(IR spectrum: {time.perf_counter() - t0:.2f} s)")
-        for k, x in enumerate(spectra):
-            n_imag = int(np.sum(x.frequencies < 0))
-            if n_imag:
-                who = f"{prep.labels[k]}: " if prep.ensemble else ""
-                prep.warnings.append(f"{who}{n_imag} imaginary mode(s) (lowest"
-                                     f" {x.frequencies.min():.1f} cm^-1): not a minimum")
-        write_ir(spec, args.output, args.plot, fwhm=args.fwhm, reference=ref,
-                 title=prep.where + (f" ({len(spectra)}-model mean)" if prep.ensemble else ""))
-        data = json.loads(Path(args.output).read_text())
-        if prep.ensemble:  # modes by rank (ascending wavenumber), mean and spread
-            modes = [{"frequencies_cm-1": x.frequencies.tolist(),
-                      "intensities_km_per_mol": x.intensities.tolist()} for x in spectra]
-            mean = {k: np.mean([m[k] for m in modes], axis=0).tolist() for k in modes[0]}
-            data.update(mean)
-            data.update(member_spread(modes))
-            data["members"] = [{"source": m.source, **x} for m, x in
-                               zip(prep.members, modes, strict=True)]
-            data["spectrum"] = f"mean of the {len(spectra)} models' broadened spectra"
-            std = np.asarray(data["frequencies_cm-1_std"])
-            prep.log(f"ensemble: wavenumber spread (std) median {np.median(std):.1f}, largest"
-                     f" {std.max():.1f} cm^-1")
-        data = prep.record(args, {**prep.energies(), **data})
-        write_json(args.output, data)
-        prep.log(f"wrote {args.output}" + (f" and {args.plot}" if args.plot else ""))
-        prep.log(prep.summary())
-        return 0
-
-    p.set_defaults(func=run)
+    p.set_defaults(func=lambda args: _line_spectrum(args, "ir"))
 
 
-def _read_reference(path: str):
-    from emlpack.errors import InputError
-
-    try:
-        table = np.loadtxt(path, ndmin=2)
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: cannot read the reference spectrum: {exc}") from None
-    if table.shape[1] < 2:
-        raise InputError(f"{path}: the reference spectrum needs two columns (cm^-1, km/mol)")
-    return table[:, 0], table[:, 1]
+def add_raman(sub: Subparsers) -> None:
+    """Register ``emlp raman``: harmonic Raman spectrum of a molecule (JSON, optional PNG)."""
+    p = add_parser(sub, "raman", "harmonic Raman spectrum of a molecule: activities and"
+                   " depolarisation ratios (JSON, optional PNG)")
+    _common(p, "positions", "raman.json", "JSON file of the spectrum")
+    _spectrum_arguments(p, "raman")
+    p.add_argument("--step", type=float, default=RAMAN_STEP,
+                   help="step (Å) of the polarizability differences along each mode")
+    p.set_defaults(func=lambda args: _line_spectrum(args, "raman"))
 
 
 def argparse_suppress() -> str:
@@ -491,4 +521,4 @@ def add_response(sub: Subparsers) -> None:
     p.set_defaults(func=run)
 
 
-COMMANDS = [add_ir, add_polarizability, add_response, add_optimize]
+COMMANDS = [add_ir, add_raman, add_polarizability, add_response, add_optimize]

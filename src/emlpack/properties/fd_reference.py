@@ -45,6 +45,7 @@ from scipy.optimize import linear_sum_assignment
 
 from emlpack.errors import EmlpackError
 from emlpack.geometry import (
+    CENTRAL_DIFFERENCES,
     STRAIN_BASIS,
     VOIGT,
     VoigtViews,
@@ -62,10 +63,7 @@ from emlpack.units import (
 
 Labeler = Callable[..., Structure]
 
-_STENCILS = {
-    2: (np.array([-1.0, 1.0]), np.array([-0.5, 0.5])),
-    4: (np.array([-2.0, -1.0, 1.0, 2.0]), np.array([1.0, -8.0, 8.0, -1.0]) / 12.0),
-}
+_STENCILS = CENTRAL_DIFFERENCES
 _AXES = "xyz"
 
 

@@ -23,11 +23,18 @@ from pathlib import Path
 import numpy as np
 from ase.data import atomic_masses
 
-from emlpack._files import write_figure_atomic, write_json_atomic
+from emlpack._files import write_json_atomic
 from emlpack.geometry import normal_modes
 from emlpack.nn.potential import EMLP
 from emlpack.properties.hessian import extended_hessian
 from emlpack.properties.response import born_oppenheimer_blocks
+from emlpack.properties.spectra import (
+    LineSpectrum,
+    default_grid,
+    lorentzian,
+    spectrum_curves,
+    write_spectrum_plot,
+)
 from emlpack.structure import Structure
 from emlpack.units import (
     IR_KM_PER_MOL_PER_E2_AMU,
@@ -61,17 +68,20 @@ class IRSpectrum:
     ) -> tuple[np.ndarray, np.ndarray]:
         """(wavenumbers cm^-1, absorbance km/mol/cm^-1) with Lorentzian lines of ``fwhm``."""
         if grid is None:
-            top = min(max(4000.0, float(self.frequencies.max(initial=0.0)) + 200.0), 10000.0)
-            grid = np.arange(0.0, top, 1.0)
+            grid = default_grid(self.frequencies)
         return grid, lorentzian(grid, self.frequencies, self.intensities, fwhm)
+
+    def mode_table(self) -> dict:
+        """The per-mode lists for JSON: wavenumbers (cm^-1) and intensities (km/mol)."""
+        return {"frequencies_cm-1": self.frequencies.tolist(),
+                "intensities_km_per_mol": self.intensities.tolist()}
 
     def as_dict(self, fwhm: float = 10.0) -> dict:
         """Plain dict for JSON: wavenumbers (cm^-1), intensities (km/mol), the spectrum broadened
         with Lorentzians of ``fwhm`` (cm^-1) and the masses (amu)."""
         grid, curve = self.broadened(fwhm=fwhm)
         return {
-            "frequencies_cm-1": self.frequencies.tolist(),
-            "intensities_km_per_mol": self.intensities.tolist(),
+            **self.mode_table(),
             "fwhm_cm-1": fwhm,
             "spectrum_grid_cm-1": grid.tolist(),
             "spectrum_km_per_mol_per_cm-1": curve.tolist(),
@@ -86,12 +96,31 @@ class IRSpectrum:
         return "\n".join(lines)
 
 
-def lorentzian(grid: np.ndarray, centres: np.ndarray, heights: np.ndarray,
-               fwhm: float) -> np.ndarray:
-    """sum_k heights_k (1/pi) (fwhm/2) / ((grid - centres_k)^2 + (fwhm/2)^2)."""
-    g = 0.5 * fwhm
-    d = np.asarray(grid)[:, None] - np.asarray(centres)[None, :]
-    return (np.asarray(heights)[None, :] * (g / np.pi) / (d * d + g * g)).sum(axis=1)
+def vibrational_modes(
+    hessian: np.ndarray, positions: np.ndarray, masses: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normal modes of a Cartesian core Hessian (3Nc, 3Nc; eV/Å²) at ``positions`` (Å) with
+    ``masses`` (amu), rigid-body motions projected out.
+
+    Returns ``(wavenumbers, vecs, cartesian)``: cm^-1 (ascending, imaginary negative), the
+    mass-weighted orthonormal eigenvectors ``e_k`` (3Nc, n_modes) and the Cartesian
+    displacement of each mode ``c_k = M^-1/2 e_k / |M^-1/2 e_k|`` (n_modes, Nc, 3), unit norm.
+    """
+    evals, vecs = normal_modes(hessian, positions, masses)
+    freqs = np.sign(evals) * np.sqrt(np.abs(evals)) * WAVENUMBER_CM1_PER_SQRT_EV_A2_AMU
+    inv_sqrt_m = 1.0 / np.sqrt(np.repeat(masses, 3))
+    cart = (vecs * inv_sqrt_m[:, None]).T.reshape(len(evals), -1, 3)
+    cart /= np.linalg.norm(cart.reshape(len(evals), -1), axis=1)[:, None, None]
+    return freqs, vecs, cart
+
+
+def ir_intensities(dipole_derivatives: np.ndarray, vecs: np.ndarray,
+                   masses: np.ndarray) -> np.ndarray:
+    """IR intensities (km/mol) ``N_A/(12 eps0 c^2) |dmu/dQ_k|^2`` from the dipole derivatives
+    dmu_a/dR_ib (3, 3Nc; e) and the mass-weighted modes ``vecs`` (3Nc, n_modes)."""
+    inv_sqrt_m = 1.0 / np.sqrt(np.repeat(masses, 3))
+    dmu_dq = dipole_derivatives @ (vecs * inv_sqrt_m[:, None])  # (3, n_modes), e/sqrt(amu)
+    return IR_KM_PER_MOL_PER_E2_AMU * np.sum(dmu_dq**2, axis=0)
 
 
 def ir_from_hessian(hessian: np.ndarray, structure: Structure) -> IRSpectrum:
@@ -100,14 +129,8 @@ def ir_from_hessian(hessian: np.ndarray, structure: Structure) -> IRSpectrum:
         raise ValueError(f"{structure.source}: IR spectra are for molecules")
     k_bo, dmu_dr, _ = born_oppenheimer_blocks(hessian, structure)
     masses = atomic_masses[structure.numbers]
-    evals, vecs = normal_modes(k_bo, structure.positions, masses)
-    freqs = np.sign(evals) * np.sqrt(np.abs(evals)) * WAVENUMBER_CM1_PER_SQRT_EV_A2_AMU
-    inv_sqrt_m = 1.0 / np.sqrt(np.repeat(masses, 3))
-    dmu_dq = dmu_dr @ (vecs * inv_sqrt_m[:, None])  # (3, n_modes), e/sqrt(amu)
-    intensities = IR_KM_PER_MOL_PER_E2_AMU * np.sum(dmu_dq**2, axis=0)
-    cart = (vecs * inv_sqrt_m[:, None]).T.reshape(len(evals), -1, 3)
-    cart /= np.linalg.norm(cart.reshape(len(evals), -1), axis=1)[:, None, None]
-    return IRSpectrum(freqs, intensities, cart, k_bo, dmu_dr, masses)
+    freqs, vecs, cart = vibrational_modes(k_bo, structure.positions, masses)
+    return IRSpectrum(freqs, ir_intensities(dmu_dr, vecs, masses), cart, k_bo, dmu_dr, masses)
 
 
 def ir_spectrum(model: EMLP, structure: Structure) -> IRSpectrum:
@@ -122,34 +145,22 @@ def write_ir(
     json_path: str | Path,
     png_path: str | Path | None = None,
     fwhm: float = 10.0,
-    reference: tuple[np.ndarray, np.ndarray] | None = None,
+    reference: LineSpectrum | tuple[np.ndarray, np.ndarray] | None = None,
     title: str = "",
 ) -> None:
-    """Write the spectrum as JSON and, optionally, a PNG plot; ``reference`` = (wavenumbers
-    cm^-1, intensities km/mol) of a reference line spectrum, broadened the same way."""
+    """Write the spectrum as JSON and, optionally, a PNG plot
+    (:func:`emlpack.properties.spectra.spectrum_figure`); ``reference``: a reference line
+    spectrum (or (wavenumbers cm^-1, intensities km/mol)), broadened the same way."""
+    if reference is not None and not isinstance(reference, LineSpectrum):
+        reference = LineSpectrum(np.asarray(reference[0], float),
+                                 np.asarray(reference[1], float), "reference")
     data = spectrum.as_dict(fwhm)
     if reference is not None:
-        data["reference_frequencies_cm-1"] = np.asarray(reference[0]).tolist()
-        data["reference_intensities_km_per_mol"] = np.asarray(reference[1]).tolist()
+        data["reference_frequencies_cm-1"] = reference.frequencies.tolist()
+        if reference.heights is not None:
+            data["reference_intensities_km_per_mol"] = reference.heights.tolist()
     write_json_atomic(json_path, data)
-    if png_path is None:
-        return
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    grid, curve = spectrum.broadened(fwhm=fwhm)
-    fig, ax = plt.subplots(figsize=(8, 4))
-    ax.plot(grid, curve, color="C0", label="eMLP")
-    if reference is not None:
-        ref = lorentzian(grid, np.asarray(reference[0]), np.asarray(reference[1]), fwhm)
-        ax.plot(grid, ref, color="C1", ls="--", label="reference")
-        ax.legend()
-    ax.set_xlabel("wavenumber (cm$^{-1}$)")
-    ax.set_ylabel("absorbance (km/mol per cm$^{-1}$)")
-    ax.set_title(title or f"IR spectrum, Lorentzian FWHM {fwhm:g} cm$^{{-1}}$")
-    fig.tight_layout()
-    write_figure_atomic(png_path, fig, dpi=120)
-    plt.close(fig)
-
+    if png_path is not None:
+        curves = spectrum_curves([(spectrum.frequencies, spectrum.intensities)], "ir", fwhm,
+                                 reference)
+        write_spectrum_plot(png_path, curves, title)
