@@ -59,7 +59,7 @@ def read_reference_spectrum(path: str | Path, kind: str, label: str | None = Non
         raise InputError(f"{path}: the reference spectrum has values that are not finite")
     if spec.heights is not None and np.any(spec.heights < 0):
         raise InputError(f"{path}: the reference spectrum has negative"
-                         f" {KINDS[kind].quantity.split()[-1]}s")
+                         f" {KINDS[kind].key.split('_')[0]}")
     return spec
 
 
