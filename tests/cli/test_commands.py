@@ -14,8 +14,8 @@ from tests.cli.helpers import WATER_CORES, run, save_test_model, water_rows, wri
 from tests.conftest import ROOT
 
 COMMANDS = ["train", "evaluate", "demo", "pretrained", "label", "relabel", "convert-reference",
-            "campaign", "ir", "polarizability", "response", "optimize", "md", "md-analysis",
-            "md-ir"]
+            "campaign", "ir", "raman", "polarizability", "response", "optimize", "md",
+            "md-analysis", "md-ir"]
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +49,7 @@ def test_help(command):
     rc, sub_out, _ = run([command, "run", "--help"] if command == "campaign" else
                          [command, "--help"])
     assert rc == 0 and "--threads" in sub_out, command
-    if command in ("ir", "polarizability", "response", "optimize", "md"):
+    if command in ("ir", "raman", "polarizability", "response", "optimize", "md"):
         for flag in ("--smiles", "--index", "--charge", "--field", "--field-au", "--threads",
                      "-o OUTPUT, --output OUTPUT"):
             assert flag in out, (command, flag)
@@ -124,6 +124,61 @@ def test_ir_and_its_plot(model, model_file, water_file, tmp_path):
     assert (ref.frequencies < 0).any()
     assert any("imaginary mode" in w for w in data["warnings"])
     assert text.strip().splitlines()[-1] == "converged with warnings (1)"  # pairs converged
+
+
+def test_raman_and_its_plot_with_references(model, model_file, water_file, tmp_path):
+    """``emlp raman`` gives the library's spectrum (JSON with units, PNG); ``--reference``
+    takes the JSON of ``emlp ir`` (wavenumbers only for Raman), a CSV and its own JSON."""
+    from emlpack.pairs.relax import relax_pairs
+    from emlpack.properties.raman import raman_spectrum
+
+    ir_json = tmp_path / "ir.json"
+    assert run(["ir", str(model_file), str(water_file), "--relax", "pairs", "-o", str(ir_json),
+                "--quiet"])[0] == 0
+    out, png = tmp_path / "raman.json", tmp_path / "raman.png"
+    rc, text, _ = run(["raman", str(model_file), str(water_file), "--relax", "pairs",
+                       "-o", str(out), "--plot", str(png), "--reference", str(ir_json),
+                       "--reference-label", "IR modes", "--quiet"])
+    assert rc == 0 and png.read_bytes()[:4] == b"\x89PNG"
+    data = json.loads(out.read_text())
+    s = read_structures(water_file)[0]
+    s = s.copy(pairs=relax_pairs(model, s, fmax=1e-6)[0].pairs)
+    ref = raman_spectrum(model, s)
+    np.testing.assert_allclose(data["frequencies_cm-1"], ref.frequencies, rtol=1e-5, atol=1e-3)
+    np.testing.assert_allclose(data["activities_A4_per_amu"], ref.activities, rtol=1e-4,
+                               atol=1e-6 * ref.activities.max())
+    assert len(data["depolarization_ratios"]) == len(ref.frequencies)
+    assert data["fwhm_cm-1"] == 10.0 and data["settings"]["step"] == 2e-3
+    assert data["reference_label"] == "IR modes" and "reference_activities_A4_per_amu" not in data
+    assert data["reference_frequencies_cm-1"] == json.loads(ir_json.read_text())["frequencies_cm-1"]
+    assert len(data["spectrum_A4_per_amu_per_cm-1"]) == len(data["spectrum_grid_cm-1"])
+    assert any("imaginary mode" in w for w in data["warnings"])  # cores not at a minimum
+    assert "activity (Å^4/amu)  depolarization" in text
+    # a CSV reference, and the command's own JSON as a reference of the next run
+    csv = tmp_path / "exp.csv"
+    csv.write_text("wavenumber,activity\n1600,2.5\n3700,8\n")
+    for reference, heights in ((csv, [2.5, 8.0]), (out, data["activities_A4_per_amu"])):
+        again = tmp_path / "again.json"
+        assert run(["raman", str(model_file), str(water_file), "--relax", "pairs", "-o",
+                    str(again), "--reference", str(reference), "--quiet"])[0] == 0
+        assert json.loads(again.read_text())["reference_activities_A4_per_amu"] == heights
+
+
+def test_ir_plot_with_a_reference_and_a_bad_reference(model_file, water_file, tmp_path):
+    csv = tmp_path / "ref.csv"
+    csv.write_text("1500 30\n3500 60\n")
+    out, png = tmp_path / "ir.json", tmp_path / "ir.png"
+    rc, _, _ = run(["ir", str(model_file), str(water_file), "--relax", "pairs", "-o", str(out),
+                    "--plot", str(png), "--reference", str(csv), "--quiet"])
+    assert rc == 0 and png.stat().st_size > 0
+    data = json.loads(out.read_text())
+    assert data["reference_intensities_km_per_mol"] == [30.0, 60.0]
+    assert data["reference_label"] == "reference (ref.csv)"
+    csv.write_text("1500 30\n3500 lots\n")
+    rc, _, err = run(["ir", str(model_file), str(water_file), "-o", str(out), "--reference",
+                      str(csv)])
+    assert rc == 2 and err.strip() == (f"emlp ir: error: {csv}, line 2: not two numbers:"
+                                       " '3500 lots'")
 
 
 #: a distorted water whose O-H bond(s) the random model (seed 0) stretches to ~1.44 Å

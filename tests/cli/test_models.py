@@ -89,7 +89,7 @@ def ensemble_folder(referenced_model, tmp_path_factory):
     return folder
 
 
-@pytest.mark.parametrize("command", ["polarizability", "ir"])
+@pytest.mark.parametrize("command", ["polarizability", "ir", "raman"])
 def test_property_commands_report_the_ensemble_mean_and_spread(ensemble_folder, tmp_path,
                                                                command):
     """An ensemble folder: every member relaxes and computes on its own; the JSON holds the
@@ -97,7 +97,7 @@ def test_property_commands_report_the_ensemble_mean_and_spread(ensemble_folder, 
     from emlpack.cli import main
 
     water = write_xyz(tmp_path / "w.xyz", water_rows(4))
-    extra = ["--relax", "pairs"] if command == "ir" else []
+    extra = ["--relax", "pairs"] if command in ("ir", "raman") else []
     singles = []
     for member in sorted(ensemble_folder.glob("*.pt")):
         out = tmp_path / f"{member.stem}.json"
@@ -108,8 +108,10 @@ def test_property_commands_report_the_ensemble_mean_and_spread(ensemble_folder, 
                  *extra]) == 0
     data = json.loads(out.read_text())
     assert data["ensemble"]["size"] == 2 and len(data["relaxation"]) == 2
-    keys = (["polarizability_isotropic_bohr3", "dipole_norm_debye", "energy_eV"]
-            if command == "polarizability" else ["frequencies_cm-1", "energy_eV"])
+    keys = {"polarizability": ["polarizability_isotropic_bohr3", "dipole_norm_debye",
+                               "energy_eV"],
+            "ir": ["frequencies_cm-1", "energy_eV"],
+            "raman": ["frequencies_cm-1", "activities_A4_per_amu", "energy_eV"]}[command]
     for key in keys:
         values = np.array([s[key] for s in singles])
         np.testing.assert_allclose(data[f"{key}_std"], values.std(axis=0), rtol=1e-6,
@@ -117,12 +119,21 @@ def test_property_commands_report_the_ensemble_mean_and_spread(ensemble_folder, 
         if key != "dipole_norm_debye":  # the mean vector's norm is not the mean norm
             np.testing.assert_allclose(data[key], values.mean(axis=0), rtol=1e-8, atol=1e-8)
     assert np.max(data[f"{keys[0]}_std"]) > 0  # two different models do differ
-    if command == "ir":  # the spectrum is the mean of the members' broadened spectra
+    if command != "polarizability":  # the spectrum: the mean of the members' broadened ones
+        from emlpack.properties.spectra import lorentzian
+
+        heights, key = {"ir": ("intensities_km_per_mol", "spectrum_km_per_mol_per_cm-1"),
+                        "raman": ("activities_A4_per_amu", "spectrum_A4_per_amu_per_cm-1")}[command]
         grid = np.asarray(data["spectrum_grid_cm-1"])
-        mean = np.mean([np.interp(grid, s["spectrum_grid_cm-1"],
-                                  s["spectrum_km_per_mol_per_cm-1"]) for s in singles], axis=0)
-        np.testing.assert_allclose(data["spectrum_km_per_mol_per_cm-1"], mean, rtol=1e-8,
+        curves = [lorentzian(grid, s["frequencies_cm-1"], s[heights], 10.0) for s in singles]
+        np.testing.assert_allclose(data[key], np.mean(curves, axis=0), rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(data[f"{key}_std"], np.std(curves, axis=0), rtol=1e-8,
                                    atol=1e-10)
+        assert len(data["members"]) == 2
+    if command == "raman":  # a mode's sign is arbitrary: its derivative tensor has no mean
+        assert "polarizability_derivatives_A2_per_sqrt_amu" not in data
+        assert all("polarizability_derivatives_A2_per_sqrt_amu" in m for m in data["members"])
+        assert len(data["depolarization_ratios_std"]) == len(data["frequencies_cm-1"])
 
 
 def test_a_member_with_a_broken_structure_is_left_out_of_the_results(ensemble_folder, tmp_path,
