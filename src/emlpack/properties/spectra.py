@@ -200,10 +200,11 @@ def spectrum_figure(curves: SpectrumCurves, title: str = "") -> Figure:
         if ref.heights is not None:
             sticks.vlines(ref.frequencies, 0.0, -ref.heights, color="C3", lw=1.4, label=ref.label)
             scale = max(scale, float(np.max(ref.heights, initial=0.0)))
+            sticks.set_ylim(-1.1 * scale, 1.1 * scale)
         else:
             sticks.vlines(ref.frequencies, 0.0, -0.3 * scale, color="C3", lw=1.4,
                           label=f"{ref.label} (wavenumbers only)")
-        sticks.set_ylim(-1.1 * scale, 1.1 * scale)
+            sticks.set_ylim(-0.6 * scale, 1.1 * scale)
         sticks.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{abs(v):g}"))
         sticks.legend(loc="lower left", fontsize=8, frameon=False, ncol=2)
     else:
