@@ -10,31 +10,25 @@
 4. intensities ``I_k = N_A/(12 eps0 c^2) |dmu/dQ_k|^2`` (km/mol) with
    ``dmu/dQ_k = sum_i Z_i L_ik / sqrt(m_i)``;
 5. Lorentzian lines ``I_k (1/pi) (w/2) / ((nu - nu_k)^2 + (w/2)^2)`` of FWHM ``w`` (default
-   10 cm^-1, the paper's), in km/mol per cm^-1.
+   10 cm^-1, the paper's), in km/mol per cm^-1 (:mod:`emlpack.properties.spectra`, which also
+   draws the plot of ``emlp ir --plot``).
 
-IR spectra from MD (the dipole autocorrelation) are in :mod:`emlpack.dynamics.ir_acf`.
+IR spectra from MD (the dipole autocorrelation) are in :mod:`emlpack.dynamics.ir_acf`; Raman
+spectra in :mod:`emlpack.properties.raman`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from ase.data import atomic_masses
 
-from emlpack._files import write_json_atomic
 from emlpack.geometry import normal_modes
 from emlpack.nn.potential import EMLP
 from emlpack.properties.hessian import extended_hessian
 from emlpack.properties.response import born_oppenheimer_blocks
-from emlpack.properties.spectra import (
-    LineSpectrum,
-    default_grid,
-    lorentzian,
-    spectrum_curves,
-    write_spectrum_plot,
-)
+from emlpack.properties.spectra import default_grid, lorentzian
 from emlpack.structure import Structure
 from emlpack.units import (
     IR_KM_PER_MOL_PER_E2_AMU,
@@ -138,29 +132,3 @@ def ir_spectrum(model: EMLP, structure: Structure) -> IRSpectrum:
     :func:`emlpack.properties.optimize.optimize`)."""
     _, h = extended_hessian(model, structure)
     return ir_from_hessian(h.numpy(), structure)
-
-
-def write_ir(
-    spectrum: IRSpectrum,
-    json_path: str | Path,
-    png_path: str | Path | None = None,
-    fwhm: float = 10.0,
-    reference: LineSpectrum | tuple[np.ndarray, np.ndarray] | None = None,
-    title: str = "",
-) -> None:
-    """Write the spectrum as JSON and, optionally, a PNG plot
-    (:func:`emlpack.properties.spectra.spectrum_figure`); ``reference``: a reference line
-    spectrum (or (wavenumbers cm^-1, intensities km/mol)), broadened the same way."""
-    if reference is not None and not isinstance(reference, LineSpectrum):
-        reference = LineSpectrum(np.asarray(reference[0], float),
-                                 np.asarray(reference[1], float), "reference")
-    data = spectrum.as_dict(fwhm)
-    if reference is not None:
-        data["reference_frequencies_cm-1"] = reference.frequencies.tolist()
-        if reference.heights is not None:
-            data["reference_intensities_km_per_mol"] = reference.heights.tolist()
-    write_json_atomic(json_path, data)
-    if png_path is not None:
-        curves = spectrum_curves([(spectrum.frequencies, spectrum.intensities)], "ir", fwhm,
-                                 reference)
-        write_spectrum_plot(png_path, curves, title)
