@@ -26,9 +26,10 @@ polarizability).
 3. Raman invariants (D. A. Long, *The Raman Effect*, 2002), for each mode:
    ``a'^2 = (tr alpha'/3)^2`` and ``gamma'^2 = 1/2 [(a'_xx - a'_yy)^2 + (a'_yy - a'_zz)^2 +
    (a'_zz - a'_xx)^2] + 3 (a'_xy^2 + a'_yz^2 + a'_zx^2)``; the Raman activity
-   ``S = 45 a'^2 + 7 gamma'^2`` (Å⁴/amu), as ASE's ``Raman.get_absolute_intensities()``
-   (``delta=0``, same invariants and units; tested) and the "Raman activities" of quantum
-   chemistry codes; the depolarisation ratios ``rho_p = 3 gamma'^2 / (45 a'^2 + 4 gamma'^2)``
+   ``S = 45 a'^2 + 7 gamma'^2`` (Å⁴/amu), the "Raman activity" of quantum chemistry codes and
+   ASE's ``Raman.get_absolute_intensities()`` (``delta=0``: same invariants and units; matched
+   rather than used, since ASE's ``PlaczekStatic`` differences 6N Cartesian displacements;
+   tested); the depolarisation ratios ``rho_p = 3 gamma'^2 / (45 a'^2 + 4 gamma'^2)``
    (plane-polarised incident light, 90° scattering; 0 to 3/4, 3/4 = depolarised) and
    ``rho_n = 6 gamma'^2 / (45 a'^2 + 7 gamma'^2)`` (natural light; 0 to 6/7). A mode without
    activity (below :data:`INACTIVE` of the largest) has no ratio (NaN; ``None`` in JSON).
