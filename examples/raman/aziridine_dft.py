@@ -27,20 +27,20 @@ polarizability derivatives along the normal modes, by finite fields and central 
    ``depolarization_ratios``, ...: ``emlp raman mini-eqm7 --smiles C1CN1 --reference FILE``).
 
 Resumable per SCF: the plan (geometry, modes, steps, level) is ``OUT/plan.npz`` and every
-SCF's dipole a small immutable file ``OUT/KK+/Fx-.npz`` (mode, displacement sign, field
-direction and sign), written atomically; a re-run computes only the missing ones, a plan of
-another geometry, level or step is refused. ``--reverse`` runs the SCFs from the last one back,
-so a second process can share ``OUT`` with a forward one. ``OUT`` defaults to
-``examples/raman/aziridine_dft/`` (the files can be committed as they finish, as the mini-eQM7
-references are).
+SCF's dipole a small immutable file ``OUT/KK+/field_x-.npz`` (mode, displacement sign, field
+direction and sign; :mod:`emlpack.qm.finite_field`), written atomically; a re-run computes
+only the missing ones, a plan of another geometry, level or step is refused. ``--reverse``
+runs the SCFs from the last one back, so a second process can share ``OUT`` with a forward
+one. ``OUT`` defaults to ``examples/raman/aziridine_dft/`` (the files can be committed as they
+finish, as the mini-eQM7 references are).
 
 Cost: 18 modes x 2 displacements x 6 fields = 216 SCFs (no forces, no localisation) with
 ``--geometry reference``. Measured at PBE0/aug-cc-pVDZ with density fitting (114 basis
 functions, 1 thread, this project's 2-core machine with both cores running DFT jobs):
-11-13 SCF cycles and 9-14 s wall (3-4 s of CPU) per SCF, so 216 x ~10 s ~ 40 min on a busy
+11-13 SCF cycles and 9-14 s wall (~3 s of CPU) per SCF, so 216 x ~10 s ~ 40 min on a busy
 core, ~15 min on an idle one. ``--geometry optimize`` adds a few BFGS steps (SCF + forces)
 and PySCF's analytic Hessian (not measured). Smoke test (run):
-``--level pbe0/sto-3g --modes 0,12 --out /tmp/aziridine_smoke``: 24 SCFs, 47 s wall.
+``--level pbe0/sto-3g --modes 0,12 --out /tmp/aziridine_smoke``: 24 SCFs, 47-59 s wall.
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ def tight_labeler(level: str, threads: int | None):
     """A :class:`PySCFLabeler` at ``level`` with the SCF convergence of the finite fields."""
     from dataclasses import replace
 
-    from emlpack.qm.levels import parse_level
+    from emlpack.qm.levels import DEFAULT_CONV_TOL, parse_level
     from emlpack.qm.pyscf_labeler import PySCFLabeler
 
     class TightLabeler(PySCFLabeler):
@@ -80,8 +80,10 @@ def tight_labeler(level: str, threads: int | None):
             mf.conv_tol_grad = CONV_TOL_GRAD
             return mol, mf
 
-    return TightLabeler(replace(parse_level(level), conv_tol=CONV_TOL), threads=threads,
-                        reuse_density=True)
+    lv = parse_level(level)
+    if lv.conv_tol == DEFAULT_CONV_TOL:  # not given in the level's name (``/tolX``)
+        lv = replace(lv, conv_tol=CONV_TOL)
+    return TightLabeler(lv, threads=threads, reuse_density=True)
 
 
 def reference_geometry() -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
@@ -126,7 +128,7 @@ def optimized_geometry(out: Path, labeler) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 def make_plan(numbers: np.ndarray, positions: np.ndarray, hessian: np.ndarray, origin: str,
-              level: str, step: float, field_au: float) -> dict:
+              level: str, step: float, field_au: float, conv_tol: float = CONV_TOL) -> dict:
     """The displacements: wavenumbers and unit Cartesian modes of ``hessian``, step, field."""
     from ase.data import atomic_masses
 
@@ -136,7 +138,8 @@ def make_plan(numbers: np.ndarray, positions: np.ndarray, hessian: np.ndarray, o
     freqs, _, modes = vibrational_modes(hessian, positions, masses)
     return {"numbers": np.asarray(numbers), "positions": np.asarray(positions, float),
             "masses": masses, "frequencies": freqs, "modes": modes, "step": float(step),
-            "field_au": float(field_au), "level": str(level), "origin": str(origin)}
+            "field_au": float(field_au), "level": str(level), "origin": str(origin),
+            "conv_tol": float(conv_tol)}
 
 
 def load_or_save_plan(out: Path, plan: dict) -> dict:
@@ -153,7 +156,8 @@ def load_or_save_plan(out: Path, plan: dict) -> dict:
                            - 1).max() < 1e-8
                 and float(saved["step"]) == plan["step"]
                 and float(saved["field_au"]) == plan["field_au"]
-                and str(saved["level"]) == plan["level"])
+                and str(saved["level"]) == plan["level"]
+                and float(saved.get("conv_tol", CONV_TOL)) == plan["conv_tol"])
         if not same:
             raise PlanError(f"{path}: displacements of another geometry, level or step; use"
                             " another --out or delete the folder to start again")
@@ -166,34 +170,21 @@ def load_or_save_plan(out: Path, plan: dict) -> dict:
 
 def polarizability(labeler, numbers: np.ndarray, positions: np.ndarray, field_au: float,
                    folder: Path) -> tuple[np.ndarray, float]:
-    """alpha (Å³, symmetrised) at ``positions`` from the dipoles under +-F along x, y, z; each
-    SCF's dipole cached as ``folder/F{x,y,z}{-,+}.npz``. Returns (alpha, SCF seconds)."""
-    from emlpack._files import write_npz_atomic
-    from emlpack.units import COULOMB_EV_A, FIELD_AU_IN_V_PER_A
+    """alpha (Å³, symmetrised) at ``positions`` from the dipoles under +-F along x, y, z
+    (:func:`emlpack.qm.finite_field.finite_field_response`, each SCF's dipole cached as
+    ``folder/field_{x,y,z}{+,-}.npz``). Returns (alpha, seconds of the SCFs run now)."""
+    from emlpack.qm.finite_field import finite_field_response
+    from emlpack.units import COULOMB_EV_A
 
-    f_v = field_au * FIELD_AU_IN_V_PER_A
-    dipoles = np.zeros((3, 2, 3))
-    seconds = 0.0
-    for a in range(3):
-        for k, sign in enumerate(SIGNS):
-            path = folder / f"F{'xyz'[a]}{sign}.npz"
-            if not path.exists():
-                field = np.zeros(3)
-                field[a] = (1.0 if sign == "+" else -1.0) * f_v
-                r = labeler(numbers, positions, field=field, forces=False, localize=False)
-                if not r.ok:
-                    raise RuntimeError(f"{path}: SCF failed: {r.error}")
-                folder.mkdir(parents=True, exist_ok=True)
-                write_npz_atomic(path, positions=positions, field_V_per_A=field,
-                                 dipole_e_A=r.dipole, wall_s=r.wall_time,
-                                 scf_cycles=r.scf_cycles)
-            with np.load(path) as d:
-                if np.abs(d["positions"] - positions).max() > 1e-10:
-                    raise PlanError(f"{path}: a dipole at another geometry")
-                dipoles[a, k] = d["dipole_e_A"]
-                seconds += float(d["wall_s"])
-    alpha = ((dipoles[:, 1] - dipoles[:, 0]) / (2 * f_v)).T  # d mu_i / d F_j, e·Å²/V
-    return 0.5 * (alpha + alpha.T) * COULOMB_EV_A, seconds
+    seconds = []
+
+    def timed(*args, **kwargs):
+        result = labeler(*args, **kwargs)
+        seconds.append(float(result.wall_time))
+        return result
+
+    response = finite_field_response(timed, numbers, positions, step_au=field_au, cache=folder)
+    return response.polarizability * COULOMB_EV_A, float(sum(seconds))
 
 
 def run(out: Path, plan: dict, labeler, modes: list[int] | None = None,
@@ -240,7 +231,9 @@ def run(out: Path, plan: dict, labeler, modes: list[int] | None = None,
         "anisotropy_sq_A4_per_amu": aniso_sq.tolist(),
         "polarizability_derivatives_A2_per_sqrt_amu": derivs.tolist(),
         "step_A": plan["step"], "field_step_au": plan["field_au"],
-        "scf_count": 12 * len(todo), "scf_seconds": seconds,
+        "scf_count": 12 * len(todo), "scf_seconds_this_run": seconds,
+        "scf_convergence": {"conv_tol_Ha": float(plan["conv_tol"]),
+                            "conv_tol_grad": CONV_TOL_GRAD},
     }
 
 
@@ -266,18 +259,20 @@ def main(argv: list[str] | None = None) -> int:
     labeler = tight_labeler(args.level, args.threads)
     source = (reference_geometry() if args.geometry == "reference" else
               optimized_geometry(args.out, labeler))
-    plan = make_plan(*source, level=labeler.level.name, step=args.step,
-                     field_au=args.field_au)
+    level = labeler.level.name.split("/tol")[0]  # the tolerance is recorded on its own
+    plan = make_plan(*source, level=level, step=args.step, field_au=args.field_au,
+                     conv_tol=labeler.level.conv_tol)
     modes = [int(m) for m in args.modes.split(",")] if args.modes else None
     data = run(args.out, plan, labeler, modes, args.reverse)
     if args.json:
         path = args.json
     elif modes is None:
-        path = Path(__file__).parent / f"{NAME}_{labeler.level.name.replace('/', '_')}.json"
+        path = Path(__file__).parent / f"{NAME}_{level.replace('/', '_')}.json"
     else:
         path = args.out / "raman.json"
     write_json_atomic(path, data)
-    print(f"wrote {path}: {data['scf_count']} SCFs, {data['scf_seconds']:.0f} s of SCF")
+    print(f"wrote {path}: {data['scf_count']} SCFs ({data['scf_seconds_this_run']:.0f} s of"
+          " SCF in this run)")
     return 0
 
 

@@ -31,7 +31,7 @@ class BondPolarizabilityLabeler:
 
         self.model, self.calls = BondPolarizability(), 0
 
-    def __call__(self, numbers, positions, field, forces=False, localize=False):
+    def __call__(self, numbers, positions, field, **kwargs):
         from ase import Atoms
 
         self.calls += 1
@@ -54,7 +54,7 @@ def test_recipe_matches_ase_placzek_static_and_resumes(tmp_path):
     labeler = BondPolarizabilityLabeler()
     data = az.run(tmp_path / "work", plan, labeler, log=lambda _: None)
     assert labeler.calls == 216 and data["complete"] and data["scf_count"] == 216
-    assert len(list((tmp_path / "work").glob("*/F*.npz"))) == 216
+    assert len(list((tmp_path / "work").glob("*/field_*.npz"))) == 216
     # ASE: Cartesian displacements of the same atoms, forces of the same Hessian
     atoms = Atoms(numbers=numbers, positions=positions)
     atoms.calc = HarmonicCalculator(HarmonicForceField(atoms.copy(), hessian_x=hessian))
