@@ -15,6 +15,8 @@
 #   val-refs      the DFT polarizabilities of mini-eQM7's validation molecules
 #                 (examples/eqm7/validation_references.py; files committed every 25 min), on
 #                 bg-optimize's core once that has converged
+#   raman-dft     the DFT Raman reference of aziridine (examples/raman/aziridine_dft.py, ~216
+#                 SCFs, ~15-40 min), after val-refs on the same core; committed when it ends
 #   pretrain      the QM7-wide cheap-level campaign (emlp campaign run on the folder named in
 #                 examples/qm7_cheap/DATASET once the level is chosen; shards committed every
 #                 25 min) on the cores the others leave: one labeling process, two when no
@@ -43,6 +45,8 @@ code_copy() {  # code_copy JOB: a private copy of src/ and examples/ for the job
 
 stop_job() {
   if running "$1"; then
+    # raman-dft is a bash -c around the recipe: stop the recipe itself (its SCF files are kept)
+    [ "$1" = raman-dft ] && pkill -TERM -P "$(cat "$PIDS/$1.pid")" 2>/dev/null
     kill "$(cat "$PIDS/$1.pid")" && echo "$1: stopping (it saves and commits its finished work)"
   fi
 }
@@ -96,9 +100,25 @@ start_val_refs() {
   echo "val-refs: PID $!, log runs/val-refs.log"
 }
 
+RAMAN_JSON=examples/raman/aziridine_pbe0_aug-cc-pvdz.json
+
+start_raman_dft() {
+  running raman-dft && return 0
+  [ -f "$RAMAN_JSON" ] && return 0
+  code_copy raman
+  # the recipe's files are committed when it ends (a rerun computes only the missing SCFs)
+  OMP_NUM_THREADS=1 nohup bash -c "PYTHONPATH=/tmp/emlp-raman/src $PY \
+    /tmp/emlp-raman/examples/raman/aziridine_dft.py --threads 1 --out examples/raman/aziridine_dft \
+    --json $RAMAN_JSON; PYTHONPATH=src $PY -c \"from emlpack.commits import git_commit; \
+    git_commit(['examples/raman'], 'aziridine DFT Raman reference (PBE0/aug-cc-pVDZ)')\"" \
+    >> runs/raman-dft.log 2>&1 &
+  echo $! > "$PIDS/raman-dft.pid"
+  echo "raman-dft: PID $!, log runs/raman-dft.log"
+}
+
 others() {  # how many of the other jobs run (each takes one core)
   local n=0 job
-  for job in level-choice bg-optimize val-refs; do running "$job" && n=$((n + 1)); done
+  for job in level-choice bg-optimize val-refs raman-dft; do running "$job" && n=$((n + 1)); done
   echo "$n"
 }
 
@@ -119,7 +139,10 @@ start_pretrain() {  # start_pretrain WORKERS
 start_all() {
   start_bg_optimize
   start_level_choice
-  running bg-optimize || start_val_refs
+  if ! running bg-optimize; then
+    start_val_refs
+    running val-refs || start_raman_dft
+  fi
   local free=$((2 - $(others)))
   [ "$free" -ge 1 ] && start_pretrain "$free"
   return 0
@@ -128,7 +151,7 @@ start_all() {
 watch_jobs() {  # every 5 minutes: start what is due (one more labeling process when a core frees)
   while sleep 300; do
     if running pretrain && [ "$(cat "$PIDS/pretrain.workers" 2>/dev/null)" = 1 ] \
-        && [ "$(others)" = 0 ] && val_refs_done; then
+        && [ "$(others)" = 0 ] && val_refs_done && [ -f "$RAMAN_JSON" ]; then
       stop_job pretrain
       while running pretrain; do sleep 10; done
     fi
@@ -138,7 +161,7 @@ watch_jobs() {  # every 5 minutes: start what is due (one more labeling process 
 
 status() {
   local job
-  for job in level-choice bg-optimize val-refs pretrain watcher; do
+  for job in level-choice bg-optimize val-refs raman-dft pretrain watcher; do
     if running "$job"; then echo "$job: running (PID $(cat "$PIDS/$job.pid"))"; else echo "$job: not running"; fi
   done
   echo "--- level choice"
@@ -171,7 +194,7 @@ case "${1:-start}" in
   watch) watch_jobs ;;
   stop)
     stop_job watcher
-    for job in level-choice bg-optimize val-refs pretrain; do stop_job "$job"; done
+    for job in level-choice bg-optimize val-refs raman-dft pretrain; do stop_job "$job"; done
     ;;
   status) status ;;
   *) echo "usage: $0 [start|status|stop]" >&2; exit 2 ;;
