@@ -304,8 +304,8 @@ def test_tensorboard_logging_without_tensorboard_is_refused_before_training(monk
 
 
 # ------------------------------------------------------------------ CP2K (from the system)
-def test_labeling_a_crystal_without_cp2k_is_one_line(monkeypatch):
-    from emlpack.qm.cp2k import CP2KInputError, CP2KLabeler
+def test_labeling_a_crystal_without_cp2k_is_one_line(monkeypatch, tmp_path):
+    from emlpack.qm.cp2k import CP2KInputError, CP2KLabeler, label_into_store
     from emlpack.qm.cp2k import input as cp2k_input
     from tests.nn.helpers import water_crystal
 
@@ -318,3 +318,7 @@ def test_labeling_a_crystal_without_cp2k_is_one_line(monkeypatch):
     assert text == (f"{s.source}: CP2K cannot run: cp2k.psmp not found on PATH (install CP2K"
                     " from the system: apt-get install cp2k cp2k-data openmpi-bin, or `make"
                     " install-cp2k` in a clone)")
+    store = tmp_path / "cp2k.h5"  # refused before the store exists, not one failure per item
+    with pytest.raises(CP2KInputError, match="CP2K cannot run: cp2k.psmp not found"):
+        label_into_store([("water/0000", s, False)], store)
+    assert not store.exists()

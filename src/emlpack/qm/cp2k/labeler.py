@@ -245,6 +245,12 @@ def label_into_store(
     keys = [k for k, _, _ in items]
     if len(set(keys)) != len(keys):
         raise ValueError("label_into_store: keys must be unique")
+    # refused before the store is opened, not recorded as a failure of every structure (a
+    # scheduler's workers may have a CP2K this machine lacks)
+    missing = cp2k_available(settings) if scheduler is None else None
+    if missing is not None:
+        raise CP2KInputError(f"{store_path}: CP2K cannot run: {missing}")
+    Executor.check_backend(workers, scheduler)
     store = DatasetStore(store_path, "a")
     done = set(store.keys()) if retry_failed else store.done_keys()
     summary = LabelingSummary(str(store_path))
