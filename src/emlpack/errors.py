@@ -9,7 +9,8 @@ the command line prints it without a traceback. Each area keeps its own subclass
 
 from __future__ import annotations
 
-__all__ = ["EmlpackError", "InputError", "MissingFileError", "ModelFileError"]
+__all__ = ["EmlpackError", "InputError", "MissingDependencyError", "MissingFileError",
+           "ModelFileError"]
 
 
 class EmlpackError(Exception):
@@ -26,3 +27,8 @@ class ModelFileError(EmlpackError, ValueError):
 
 class MissingFileError(EmlpackError, FileNotFoundError):
     """An input file that does not exist (the message names it)."""
+
+
+class MissingDependencyError(EmlpackError, ImportError):
+    """An optional package that a feature needs is not installed (the message names the pip
+    extra that provides it; raised by :func:`emlpack.optional.import_optional`)."""

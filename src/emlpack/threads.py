@@ -92,10 +92,12 @@ def pyscf_openblas_core() -> str | None:
     import ctypes
     import glob
 
-    try:
-        import pyscf.lib
-    except ImportError:
+    from emlpack.optional import is_available
+
+    if not is_available("pyscf"):
         return None
+    import pyscf.lib
+
     libs = glob.glob(os.path.join(os.path.dirname(pyscf.lib.__file__), "libopenblas*.so*"))
     if not libs:
         return None

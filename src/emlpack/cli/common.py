@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from emlpack.errors import InputError, ModelFileError
+from emlpack.errors import InputError, MissingDependencyError, ModelFileError
 
 if TYPE_CHECKING:
     from collections.abc import Collection, Sequence
@@ -313,9 +313,12 @@ def read_input_atoms(args: argparse.Namespace) -> tuple[Atoms, str]:
         raise InputError("give a structure file or --smiles")
     if smiles:
         from ase import Atoms
-        from rdkit import Chem
 
+        from emlpack.optional import import_optional
         from emlpack.qm.sampling import molecule_from_smiles
+
+        Chem = import_optional("rdkit.Chem", "--smiles (RDKit 3D embedding)",
+                               alternative="give an xyz file")
 
         mol = molecule_from_smiles(smiles, name=f"SMILES {smiles}")
         atoms = Atoms(numbers=mol.numbers, positions=mol.positions)
@@ -428,6 +431,8 @@ def read_structure(args: argparse.Namespace, model: EMLP, log: Log, periodic: bo
     cores.info.pop("electron_pairs", None)
     try:
         pairs = guess_pairs(cores, method, charge=charge)
+    except MissingDependencyError:
+        raise  # its own line names the extra
     except Exception as exc:  # PySCF and the Lewis guess raise many types
         raise InputError(f"{where}: the electron-pair guess ({method}) failed:"
                          f" {one_line_text(exc)}") from exc

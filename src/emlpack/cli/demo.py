@@ -358,9 +358,14 @@ def run_demo(output: str | Path = "demo_output", minutes: float = TRAIN_MINUTES,
     ``command`` runs ``emlp`` command lines (default :func:`run_command`); ``None`` skips the
     pretrained and IR steps."""
     from emlpack.data.dataset import load_data
+    from emlpack.optional import import_optional
     from emlpack.train.evaluate import evaluate_models, select_structures
     from emlpack.train.trainer import train
 
+    for module in ("pyscf", "dask", "distributed"):  # before any step: the demo labels with DFT
+        import_optional(module, "emlp demo (it labels its training data with DFT)",
+                        alternative=f"the pretrained model alone: emlp ir {PRETRAINED} --smiles"
+                        f" {PRETRAINED_SMILES}")
     out = Path(output).resolve()
     out.mkdir(parents=True, exist_ok=True)
     times = {}

@@ -27,6 +27,7 @@ import numpy as np
 from ase import Atoms
 from ase.data import covalent_radii
 
+from emlpack.optional import import_optional, is_available
 from emlpack.structure import core_charges
 
 log = logging.getLogger(__name__)
@@ -98,17 +99,16 @@ def _have_pyscf() -> bool:
     from emlpack.threads import configure_openblas_coretype
 
     configure_openblas_coretype()  # before PySCF loads its OpenBLAS
-    try:
-        import pyscf  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    return is_available("pyscf")
 
 
 def boys_pairs(numbers: np.ndarray, positions: np.ndarray, charge: float = 0.0,
                level: str = "hf/sto-3g/nodf") -> np.ndarray:
     """Valence Foster-Boys centres (Å) of a quick PySCF calculation at ``level``."""
     from emlpack.qm.pyscf_labeler import LabelingError, PySCFLabeler
+
+    import_optional("pyscf", "the Foster-Boys pair guess ('boys')",
+                    alternative="the Lewis-structure guess ('lewis', --guess lewis)")
 
     result = PySCFLabeler(level, boys_starts=1)(numbers, positions, charge=charge,
                                                  forces=False, localize=True)

@@ -43,6 +43,7 @@ from emlpack.data.shards import (
 )
 from emlpack.data.store import DatasetStore, StoreError
 from emlpack.interrupts import terminate_as_interrupt
+from emlpack.optional import import_optional
 from emlpack.qm.levels import PAPER, parse_level
 from emlpack.qm.recipe import (
     LEGACY_FIELD_DISTRIBUTION,
@@ -73,6 +74,7 @@ IR_TEST_SMILES = {"aziridine": "C1CN1", "3-(methylamino)but-2-enal": "CNC(C)=CC=
 # ---------------------------------------------------------------------------------- selection
 def canonical(smiles: str) -> str:
     """Canonical heavy-atom SMILES after QM7's radical brackets are restored (RDKit)."""
+    import_optional("rdkit", "canonical SMILES (RDKit)")
     from rdkit import Chem, RDLogger
 
     from emlpack.qm.sampling import restore_closed_shell
@@ -95,6 +97,7 @@ def select_molecules(csv_path: str | Path, seed: int = 0, n_large: int = 100,
     molecule over the whole list: the IR molecules in test, the rest shuffled with ``seed``
     into ``fractions``.
     """
+    import_optional("rdkit", "the campaign's molecule list (RDKit reads its SMILES)")
     from rdkit import Chem, RDLogger
 
     RDLogger.DisableLog("rdApp.*")
@@ -155,6 +158,7 @@ def graph_key(smiles: str) -> str:
     """The molecular graph of ``smiles`` as text: canonical heavy-atom SMILES without stereo
     (QM7's radical brackets restored), so stereoisomers and tautomer-free spellings of one
     graph compare equal."""
+    import_optional("rdkit", "molecular graphs of SMILES (RDKit)")
     from rdkit import Chem
 
     return Chem.MolToSmiles(Chem.MolFromSmiles(canonical(smiles)), isomericSmiles=False)
@@ -185,6 +189,7 @@ def select_all_molecules(csv_path: str | Path, exclude: list[str | Path] = (), s
     Returns dicts as :func:`select_molecules` (``name`` ``qm7-ROW``, ``source``, ``smiles``,
     ``n_heavy``, ``split``, ``canonical``).
     """
+    import_optional("rdkit", "the pretraining set's molecule list (RDKit reads its SMILES)")
     from rdkit import Chem, RDLogger
 
     RDLogger.DisableLog("rdApp.*")
@@ -427,12 +432,13 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
         past_target: label every listed molecule, past the target.
     Returns a summary dict (new records, failures, shards written, wall time, ``target``).
     """
-    from emlpack.qm.labeling import run_labeling
+    from emlpack.qm.labeling import check_labeling_dependencies, run_labeling
 
     folder = Path(folder)
     settings = load_settings(folder)
     molecules = read_molecule_table(folder)
     recipe = settings["recipe"]
+    check_labeling_dependencies(recipe, workers)
     for tmp in [*(folder / SHARD_DIR).glob(".*.tmp*"), *(folder / "prepared").glob(".*.tmp*")]:
         if time.time() - tmp.stat().st_mtime > 3600:
             tmp.unlink()  # left by a run killed while writing (never a finished file)

@@ -28,6 +28,7 @@ from ase.calculators.calculator import Calculator, all_changes
 from ase.stress import full_3x3_to_voigt_6_stress
 
 from emlpack.errors import EmlpackError
+from emlpack.optional import import_optional
 from emlpack.qm.crystal_sampling import carry_reference_pairs
 from emlpack.structure import Structure
 from emlpack.units import EV_PER_A3_IN_GPA
@@ -136,8 +137,11 @@ class CrystalOptimization:
 
 def symmetrized_start(structure: Structure, symprec: float) -> Structure:
     """The structure with positions and cell symmetrised to the space group found at
-    ``symprec`` (Å; ASE ``refine_symmetry``); pairs carried along."""
+    ``symprec`` (Å; ASE ``refine_symmetry``, which needs spglib); pairs carried along."""
     from ase.spacegroup.symmetrize import refine_symmetry
+
+    import_optional("spglib", f"symprec={symprec:g} (the space-group constraint)",
+                    alternative="symprec=None (no constraint)")
 
     atoms = to_atoms(structure)
     refine_symmetry(atoms, symprec=symprec)

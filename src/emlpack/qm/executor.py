@@ -16,6 +16,8 @@ import itertools
 import os
 from collections.abc import Callable, Iterable, Iterator
 
+from emlpack.optional import import_optional
+
 
 class _Deferred:
     """A serial task: runs when its result is asked for (once)."""
@@ -48,7 +50,7 @@ class Executor:
 
     def __init__(self, workers: int | None = None, scheduler: str | None = None) -> None:
         self.workers = (os.cpu_count() or 1) if workers is None else int(workers)
-        self.uses_dask = bool(scheduler) or self.workers > 0
+        self.uses_dask = self.check_backend(workers, scheduler)
         self._client = None
         self._order = itertools.count()
         self._queue: list = []  # serial: (-priority, order, task, tag)
@@ -72,6 +74,18 @@ class Executor:
                                            silence_logs=40)
                 self._client = Client(cluster)
             self._ac = as_completed()
+
+    @staticmethod
+    def check_backend(workers: int | None = None, scheduler: str | None = None) -> bool:
+        """Whether these settings run on Dask (a scheduler, or ``workers`` other than 0; None
+        is the CPU count); raises :class:`~emlpack.errors.MissingDependencyError` when Dask is
+        then not installed."""
+        uses_dask = bool(scheduler) or workers is None or int(workers) > 0
+        if uses_dask:
+            for module in ("dask", "distributed"):
+                import_optional(module, "labeling in worker processes (Dask)",
+                                alternative="run it in this process: --workers 0 (workers=0)")
+        return uses_dask
 
     @property
     def threads_per_task(self) -> int:

@@ -29,6 +29,7 @@ import yaml
 
 from emlpack._files import write_npz_atomic
 from emlpack.data.store import DatasetStore, StoreError
+from emlpack.optional import import_optional
 from emlpack.qm.executor import Executor
 from emlpack.qm.levels import parse_level
 from emlpack.qm.pyscf_labeler import LabelingError, PySCFLabeler
@@ -109,6 +110,7 @@ def _parse_slice(text: str) -> slice:
 
 
 def _molecule_from_atoms(atoms: Atoms, name: str, source: str) -> Molecule:
+    import_optional("rdkit", f"{source}: the bonds of an xyz molecule (RDKit)")
     from rdkit import Chem
     from rdkit.Chem import rdDetermineBonds
 
@@ -183,12 +185,7 @@ def preparation_level_name(spec: str | None) -> str:
 def _preparation_calculator(level: str, threads: int | None):
     """An ASE calculator (energy, forces at zero field) at a preparation level."""
     if level in XTB_LEVELS:
-        try:
-            from tblite.ase import TBLite
-        except ImportError as exc:
-            raise SamplingError(
-                f"preparation level {level}: needs the package tblite (pip install tblite)"
-            ) from exc
+        TBLite = import_optional("tblite.ase", f"the preparation level {level} (xTB)").TBLite
         return TBLite(method=XTB_LEVELS[level], verbosity=0)
     return labeler_calculator(PySCFLabeler(level, threads=threads))
 
@@ -441,6 +438,19 @@ def _load_prepared(prep_dir: Path, name: str, level: str) -> Molecule | None:
 _PRIORITY_LABEL, _PRIORITY_PREPARE = 10, 0
 
 
+def check_labeling_dependencies(recipe: dict, workers: int | None = None,
+                                scheduler: str | None = None) -> None:
+    """Refuse, before anything is written, a labeling run whose packages are missing: PySCF
+    (the labels), tblite for an xTB preparation level, Dask unless ``workers=0`` runs it in
+    this process (:class:`~emlpack.errors.MissingDependencyError`, one line naming the extra)."""
+    import_optional("pyscf", "DFT labeling (PySCF)")
+    prep = recipe.get("prepare", {}) or {}
+    prep_level = preparation_level_name(prep.get("level") or recipe.get("level"))
+    if prep_level in XTB_LEVELS:
+        import_optional("tblite", f"the preparation level {prep_level} (xTB)")
+    Executor.check_backend(workers, scheduler)
+
+
 def run_labeling(
     sources: list,
     store_path: str | Path,
@@ -475,6 +485,7 @@ def run_labeling(
     from tqdm import tqdm
 
     t0 = time.perf_counter()
+    check_labeling_dependencies(recipe, workers, scheduler)  # before the store is opened
     store_path = Path(store_path)
     level = parse_level(recipe.get("level")).name
     prep = recipe.get("prepare", {}) or {}

@@ -30,6 +30,7 @@ import numpy as np
 from emlpack.errors import EmlpackError
 from emlpack.heap import reused_heap
 from emlpack.io.cores import find_core_centres
+from emlpack.optional import import_optional
 from emlpack.qm.levels import Level, parse_level
 from emlpack.structure import Structure, StructureError
 from emlpack.threads import configure_openblas_coretype
@@ -369,7 +370,8 @@ class PySCFLabeler:
         self.reuse_heap = bool(reuse_heap)
         self.keep_heap = bool(keep_heap)
         self.reuse_density = bool(reuse_density)
-        configure_openblas_coretype()  # before PySCF (imported when labeling) loads OpenBLAS
+        configure_openblas_coretype()  # before PySCF loads OpenBLAS
+        import_optional("pyscf", "DFT labeling (PySCFLabeler)")
         # reuse_density: (numbers, charge) of the molecule, then [(state, density matrix)]
         self._molecule: tuple | None = None
         self._densities: list[tuple[np.ndarray, np.ndarray]] = []

@@ -27,6 +27,7 @@ import numpy as np
 
 from emlpack import geometry
 from emlpack.errors import EmlpackError
+from emlpack.optional import import_optional
 from emlpack.units import BOLTZMANN_EV_K, FIELD_AU_IN_V_PER_A
 
 if TYPE_CHECKING:
@@ -121,6 +122,7 @@ def restore_closed_shell(mol: Mol) -> Mol:
 
 def molecule_from_smiles(smiles: str, name: str = "", seed: int = 0) -> Molecule:
     """Embed a SMILES (with hydrogens) in 3D with RDKit (ETKDG, then MMFF/UFF relaxation)."""
+    import_optional("rdkit", "a molecule from SMILES (RDKit 3D embedding)")
     from rdkit import Chem, RDLogger
     from rdkit.Chem import AllChem
 

@@ -70,6 +70,7 @@ from emlpack.heap import reused_heap
 from emlpack.interrupts import terminate_as_interrupt
 from emlpack.nn.checkpoint import read_checkpoint, save_model
 from emlpack.nn.potential import EMLP, ModelConfig
+from emlpack.optional import import_optional
 from emlpack.train.config import ConfigError, dump_config, training_device
 from emlpack.train.loss import TERMS, LossWeights, Metrics, combine, loss_terms, predict
 
@@ -116,6 +117,9 @@ class Trainer:
     """Trains one model from a resolved config (see :mod:`emlpack.train.config`)."""
 
     def __init__(self, cfg: dict) -> None:
+        if cfg["output"]["tensorboard"]:  # refused before any work, not after an epoch
+            import_optional("tensorboard", "output.tensorboard: true (TensorBoard logging)",
+                            alternative="set output.tensorboard=false (log.csv only)")
         self.cfg = cfg
         t = cfg["training"]
         #: where the model and the batches live (``training.device``); batches are built on
@@ -604,12 +608,8 @@ class Trainer:
     def _tensorboard(self):
         if not self.cfg["output"]["tensorboard"] or self.rank != 0:
             return None
-        try:
-            from torch.utils.tensorboard import SummaryWriter
-        except ImportError:
-            log.warning("tensorboard is not installed (pip install emlpack[tensorboard]);"
-                        " logging to log.csv only")
-            return None
+        from torch.utils.tensorboard import SummaryWriter
+
         return SummaryWriter(str(self.run_dir / "tensorboard"))
 
 

@@ -109,9 +109,10 @@ def cp2k_available(settings: CP2KSettings | None = None) -> str | None:
     """None when CP2K (executable, launcher, data) is usable, else the reason it is not."""
     s = settings or CP2KSettings()
     if shutil.which(s.cp2k) is None:
-        return f"{s.cp2k} not found on PATH (install CP2K: `make install-cp2k`)"
+        return (f"{s.cp2k} not found on PATH (install CP2K from the system: apt-get install"
+                " cp2k cp2k-data openmpi-bin, or `make install-cp2k` in a clone)")
     if s.mpirun and shutil.which(s.mpirun) is None:
-        return f"{s.mpirun} not found on PATH"
+        return f"{s.mpirun} not found on PATH (apt-get install openmpi-bin)"
     try:
         find_data_dir(s.data_dir)
     except CP2KInputError as exc:

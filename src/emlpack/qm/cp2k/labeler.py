@@ -34,7 +34,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from emlpack._files import atomic_path
-from emlpack.qm.cp2k.input import CP2KInputError, CP2KSettings, build_input, find_data_dir
+from emlpack.qm.cp2k.input import (
+    CP2KInputError,
+    CP2KSettings,
+    build_input,
+    cp2k_available,
+    find_data_dir,
+)
 from emlpack.qm.cp2k.output import (
     STRESS_SIGN,
     CP2KError,
@@ -85,6 +91,9 @@ class CP2KLabeler:
                 f"{where}: stress with a nonzero field is not possible (CP2K: stress tensor for"
                 " periodic E-field not implemented); label field and stress sets separately"
             )
+        missing = cp2k_available(s)  # CP2K comes from the system, not from pip
+        if missing is not None:
+            raise CP2KInputError(f"{where}: CP2K cannot run: {missing}")
         data_dir = find_data_dir(s.data_dir)
         composition = np.append(structure.numbers, structure.charge).tobytes()
         guess = self._wfn.get(composition) if s.reuse_wavefunction else None
@@ -236,6 +245,12 @@ def label_into_store(
     keys = [k for k, _, _ in items]
     if len(set(keys)) != len(keys):
         raise ValueError("label_into_store: keys must be unique")
+    # refused before the store is opened, not recorded as a failure of every structure (a
+    # scheduler's workers may have a CP2K this machine lacks)
+    missing = cp2k_available(settings) if scheduler is None else None
+    if missing is not None:
+        raise CP2KInputError(f"{store_path}: CP2K cannot run: {missing}")
+    Executor.check_backend(workers, scheduler)
     store = DatasetStore(store_path, "a")
     done = set(store.keys()) if retry_failed else store.done_keys()
     summary = LabelingSummary(str(store_path))
