@@ -248,7 +248,9 @@ def test_levels_parse():
     cheap = parse_level("pbe0/def2-svpd/grid1/tol1e-09")
     assert (cheap.basis, cheap.grid_level, cheap.conv_tol, cheap.auxbasis) == (
         "def2-svpd", 1, 1e-9, None)
-    for level in (cheap, PAPER, Level(basis="6-31g*", density_fit=False, grid_level=2)):
+    assert cheap.name == "pbe0/def2-svpd/grid1"  # the tolerance is not part of the name
+    for level in (parse_level("pbe0/def2-svpd/grid1"), PAPER,
+                  Level(basis="6-31g*", density_fit=False, grid_level=2)):
         assert parse_level(level.name) == level  # a name parses back to its level
 
 

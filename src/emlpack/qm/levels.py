@@ -4,7 +4,9 @@ A level is written ``xc/basis`` (e.g. ``pbe0/aug-cc-pvtz``), optionally ``xc/bas
 or ``xc/basis/nodf`` (no density fitting), then optionally ``/gridN`` (DFT grid level N instead
 of 3) and ``/tolX`` (SCF energy tolerance X Hartree instead of 1e-10), e.g.
 ``pbe0/def2-svpd/grid1``; or given by a preset name from :data:`PRESETS`. :attr:`Level.name`
-writes this form, so a level's name parses back to the same level.
+writes this form without the tolerance (a convergence setting, not part of the level of
+theory: the names of data and reference folders stay as they were), so a level at the default
+tolerance parses back from its name.
 """
 
 from __future__ import annotations
@@ -49,8 +51,6 @@ class Level:
             text += f"/{self.auxbasis}"
         if self.grid_level != DEFAULT_GRID_LEVEL:
             text += f"/grid{self.grid_level}"
-        if self.conv_tol != DEFAULT_CONV_TOL:
-            text += f"/tol{self.conv_tol:g}"
         return text
 
     def as_dict(self) -> dict:
