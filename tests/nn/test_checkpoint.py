@@ -12,7 +12,7 @@ from emlpack.nn import EMLP, ModelConfig
 from emlpack.nn.checkpoint import CheckpointError, load_model, read_checkpoint, save_model
 from emlpack.structure import Structure
 
-CONFIG = ModelConfig(n_features=8, n_filters=4, n_rbf=4, n_interactions=1)
+CONFIG = ModelConfig(short_range={"n_features": 8, "n_filters": 4, "n_rbf": 4, "n_interactions": 1})
 
 
 def methane() -> Structure:

@@ -89,7 +89,7 @@ def test_training_reduces_the_loss_and_writes_the_run(tmp_path, small_data):
     saved = yaml.safe_load((run / "config.yaml").read_text())
     assert saved["training"]["max_epochs"] == 4
     model = load_model(best)  # weights_only loading of the model part
-    assert model.config.n_features == 16
+    assert model.config.short_range["n_features"] == 16
     meta = read_checkpoint(run / "last.pt")["metadata"]
     assert meta["training"]["epoch"] == 4 and meta["reference"]["kind"] == "hydrides"
     # the training domain the calculator checks: elements and the largest molecule
