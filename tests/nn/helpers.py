@@ -34,14 +34,16 @@ class RadialPairs(nn.Module):
     SchNet's capabilities (no held edges, no table, no edge-length Hessian), so that every
     generic path of the package runs with it.
 
-    Per particle a scalar density ``rho_i = sum_j g(r_ij) * W[Z_j]`` and a vector density
-    ``v_i = sum_j d_ij g(r_ij) * U[Z_j]`` (``d_ij = r_j - r_i``, K channels, ``g``: K
-    Gaussians times the cosine cutoff); ``E_i = e[Z_i] + MLP([rho_i, |v_i|^2])``. Invariant
+    Per particle a scalar density ``rho_i = sum_j g(r_ij) * W[Z_j] / J`` and a vector density
+    ``v_i = sum_j d_ij g(r_ij) * U[Z_j] / J`` (``d_ij = r_j - r_i``, K channels, ``g``: K
+    Gaussians times the cosine cutoff, ``J = norm``); ``E_i = e[Z_i] + MLP([rho_i,
+    |v_i|^2])``. Invariant
     under rotations (the vector density enters through its norm) and smooth at d = 0."""
 
     def __init__(self, cutoff: float, cutoff_transition: float, n_features: int = 8,
-                 n_hidden: int = 16) -> None:
+                 n_hidden: int = 16, norm: float = 10.0) -> None:
         super().__init__()
+        self.norm = norm
         self.cutoff, self.cutoff_transition = cutoff, cutoff_transition
         k = n_features
         self.register_buffer("centers", torch.linspace(0.0, cutoff, k, dtype=torch.float64),
@@ -59,7 +61,8 @@ class RadialPairs(nn.Module):
         g = torch.exp(-0.5 * ((r[:, None] - self.centers.to(r.dtype)) / self.width) ** 2)
         g = g * cosine_cutoff(r, self.cutoff, self.cutoff_transition)[:, None]  # (E, K)
         n = numbers.numel()
-        w, u = self.scalar(numbers).to(r.dtype), self.vector(numbers).to(r.dtype)
+        w = self.scalar(numbers).to(r.dtype) / self.norm
+        u = self.vector(numbers).to(r.dtype) / self.norm
         rho = segment_sum(torch.cat([g * w[j], g * w[i]]), torch.cat([i, j]), n)
         gu = torch.cat([g * u[j], g * u[i]])  # (2E, K)
         d = torch.cat([vectors, -vectors])  # from each particle to its neighbour

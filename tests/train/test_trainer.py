@@ -188,7 +188,7 @@ def test_ensemble_of_seeds_and_evaluation_table(tmp_path, small_data):
     assert [p.parent.name for p in paths] == ["seed0", "seed1"]
     w0 = read_checkpoint(paths[0])["state_dict"]
     w1 = read_checkpoint(paths[1])["state_dict"]
-    assert not torch.equal(w0["schnet.embedding.weight"], w1["schnet.embedding.weight"])
+    assert not torch.equal(w0["short_range.embedding.weight"], w1["short_range.embedding.weight"])
     table, results = evaluate_models(paths, small_data, tmp_path / "eval", subset="val",
                                      max_structures=3, progress=False)
     assert "±" in table and "error rate" in table and "intrinsic variability" in table
