@@ -103,6 +103,30 @@ def random_model(seed: int = 0, dtype=torch.float64, family: str = "schnet",
     return model.to(dtype)
 
 
+def as_format_1(path):
+    """Rewrite the SchNet checkpoint ``path`` as emlpack wrote it before the short-range
+    families (format 1: flat model config, ``schnet.*`` weights; a training config in the
+    metadata with a flat model section too); returns ``path``."""
+    payload = torch.load(path, map_location="cpu", weights_only=True)
+    assert payload["config"]["family"] == "schnet"
+
+    def flat(config: dict) -> dict:
+        config = dict(config)
+        family, params = config.pop("family"), config.pop("short_range")
+        assert family == "schnet"
+        return {**params, **config}
+
+    payload["format_version"] = 1
+    payload["config"] = flat(payload["config"])
+    payload["state_dict"] = {"schnet." + k.removeprefix("short_range."): v
+                             for k, v in payload["state_dict"].items()}
+    meta = payload.get("metadata") or {}
+    if isinstance(meta.get("config"), dict) and "model" in meta["config"]:
+        meta["config"] = {**meta["config"], "model": flat(meta["config"]["model"])}
+    torch.save(payload, path)
+    return path
+
+
 def zero_short_range(model: EMLP) -> EMLP:
     """The same model with every short-range parameter zero: for SchNet (and the test
     family) the atomic energies then vanish identically."""
