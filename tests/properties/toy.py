@@ -19,7 +19,7 @@ import torch
 from emlpack.nn import EMLP, ModelConfig
 from emlpack.structure import Structure
 from emlpack.units import COULOMB_EV_A, REFERENCE_GAMMA, SQRT_PI
-from tests.nn.helpers import SMALL
+from tests.nn.helpers import FAMILY_PARAMS, SMALL
 
 
 class SpringModel(EMLP):
@@ -91,12 +91,14 @@ def spring_network(structure: Structure, k_pair: float = 20.0, k_core: float = 2
 
 
 def spring_model(structure: Structure, seed: int = 0, weight_scale: float = 0.3,
-                 **kw) -> SpringModel:
-    """Small random SchNet (weights N(0, (scale^2)/fan_in)) plus :func:`spring_network`."""
+                 family: str = "schnet", **kw) -> SpringModel:
+    """Small random short range of ``family`` (SchNet by default; weights N(0,
+    (scale^2)/fan_in)) plus :func:`spring_network`."""
     torch.manual_seed(seed)
     elements = tuple(sorted(set(structure.numbers.tolist())))
-    model = SpringModel(ModelConfig(short_range=SMALL, elements=elements),
-                        spring_network(structure, **kw))
+    config = ModelConfig(family=family, short_range=FAMILY_PARAMS.get(family, {}),
+                         elements=elements)
+    model = SpringModel(config, spring_network(structure, **kw))
     with torch.no_grad():
         for name, p in model.named_parameters():
             if name.endswith("bias"):
