@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from emlpack.nn.potential import ModelConfig
+from emlpack.nn.potential import ModelConfig, nest_flat_keys
 from emlpack.nn.short_range import family_defaults
 from emlpack.train.config import ConfigError, dump_config, load_config
 from tests.nn.helpers import FAMILIES
@@ -30,10 +30,12 @@ def test_committed_config_files_load(path, tmp_path):
     model = cfg["model"]
     assert model["family"] == "schnet"
     assert set(model["short_range"]) == set(family_defaults("schnet"))
-    written = load_yaml(path.read_text()).get("model", {})
-    for key, value in written.items():  # the file's values arrive where they belong
-        where = model if key in model else model["short_range"]
-        assert where[key] == (list(value) if isinstance(value, tuple) else value), key
+    # the file's values arrive where they belong (flat SchNet keys: under short_range)
+    written = nest_flat_keys(load_yaml(path.read_text()).get("model", {}))
+    for key, value in written.pop("short_range", {}).items():
+        assert model["short_range"][key] == value, key
+    for key, value in written.items():
+        assert model[key] == value, key
     ModelConfig.from_dict(model)
     saved = tmp_path / "config.yaml"
     dump_config(cfg, saved)
