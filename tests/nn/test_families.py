@@ -13,6 +13,7 @@ from emlpack.nn import EMLP, ModelConfig
 from emlpack.nn.potential import nest_flat_keys
 from emlpack.nn.short_range import (
     FamilyError,
+    FrozenAnyDtype,
     HoldsEdges,
     LengthHessian,
     ShortRange,
@@ -64,8 +65,8 @@ def test_capabilities_are_found_by_method_not_class():
     for sr in (schnet, radial):
         assert isinstance(sr, ShortRange)
     assert isinstance(schnet, HoldsEdges) and isinstance(schnet, TabulatesEdges)
-    assert isinstance(schnet, LengthHessian)
-    assert not isinstance(radial, HoldsEdges | TabulatesEdges | LengthHessian)
+    assert isinstance(schnet, LengthHessian) and isinstance(schnet, FrozenAnyDtype)
+    assert not isinstance(radial, HoldsEdges | TabulatesEdges | LengthHessian | FrozenAnyDtype)
     model = random_model(family="radial")
     g = model.graph(methane())
     with pytest.raises(TypeError, match="'radial' cannot hold edges"):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from emlpack.io import read_structures
 from emlpack.pairs.relax import relax_pairs
@@ -195,3 +196,22 @@ def test_fast_pair_hessians_equal_the_reverse_passes_for_every_family(family):
     fast, reverse = prob.hessians(x), prob.hessians(x, method="reverse")
     scale = float(reverse.abs().max())
     torch.testing.assert_close(fast, reverse, rtol=0, atol=1e-11 * scale)
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_the_float32_phase_reaches_the_float64_minima_for_every_family(family):
+    """A batch of 128 pairs (32 waters) takes the float32 start (a family without the
+    capability ``FrozenAnyDtype`` on a float32 copy of the model): the same minima as float64
+    throughout."""
+    from tests.nn.helpers import random_model, water_molecule
+
+    model = random_model(family=family)
+    starts = [water_molecule()] * 32
+    assert sum(s.n_pairs for s in starts) >= 128
+    mixed = relax_pairs(model, starts, fmax=1e-7, check_curvature=False)
+    plain = relax_pairs(model, starts, fmax=1e-7, check_curvature=False, float32_above=0)
+    for a, b in zip(mixed, plain, strict=True):
+        assert a.converged and b.converged, (a.reason, b.reason)
+        assert a.energy == pytest.approx(b.energy, abs=1e-9)
+        np.testing.assert_allclose(a.pairs, b.pairs, atol=1e-5)
+    assert next(model.parameters()).dtype == torch.float64  # the caller's model unchanged

@@ -83,9 +83,9 @@ from emlpack.nn.electrostatics import (
     ewald_reciprocal_derivatives,
 )
 from emlpack.nn.graph import Graph
-from emlpack.nn.potential import EMLP
+from emlpack.nn.potential import EMLP, for_evaluation
 from emlpack.nn.scatter import segment_sum
-from emlpack.nn.short_range import HeldEdges, HoldsEdges, TabulatesEdges
+from emlpack.nn.short_range import FrozenAnyDtype, HeldEdges, HoldsEdges, TabulatesEdges
 from emlpack.nn.short_range.hessian import short_range_position_hessian
 from emlpack.pairs.checks import (
     COLLAPSE_DISTANCE,
@@ -1050,9 +1050,12 @@ def _relax_coulomb(model: EMLP, structures: Sequence[Structure], opts: RelaxOpti
                and standard_energy(model))
     prob32 = prob
     if low:
-        # the held core-core edges rounded from float64 (not recomputed in float32)
+        # the held core-core edges rounded from float64 (not recomputed in float32); a family
+        # that cannot evaluate float32 inputs on its float64 weights gets a float32 copy
         held32 = None if prob.held is None else prob.held.to(torch.float32)
-        prob32 = _PairProblem(model, g.to(dtype=torch.float32), held=held32,
+        model32 = (model if isinstance(model.short_range, FrozenAnyDtype)
+                   else for_evaluation(model, torch.float32))
+        prob32 = _PairProblem(model32, g.to(dtype=torch.float32), held=held32,
                               filter_table=prob.filter_table, tabulate=prob.tabulated)
     work = prob32 if low else prob
     # EMLP's own energy: the model evaluations leave out the electrostatics, whose energy and
@@ -1081,7 +1084,7 @@ def _relax_coulomb(model: EMLP, structures: Sequence[Structure], opts: RelaxOpti
         short = _lumped_short_range(work, coulomb, x, g_short, 3e-4 if low else 1e-4, lr)
         n_eval += 3 * (~converged).long()
     evaluate = _ActiveEvaluator(model, prob)
-    evaluate32 = _ActiveEvaluator(model, prob32)
+    evaluate32 = _ActiveEvaluator(prob32.model, prob32)
     curvilinear = _BondRotations(structures, x) if opts.bond_rotations else None
     # structures with a group of pairs about one bond take one step along its collective
     # rotation (``rotation_probe``) instead of a Newton step, once; then ``probed``
@@ -1377,7 +1380,7 @@ def _min_curvature(prob: _PairProblem, x: torch.Tensor, grad: torch.Tensor,
         # products only for the structures whose Ritz pair has not converged yet (Davidson
         # zeroes the others' directions)
         pp = product_prob or prob
-        evaluate = _ActiveEvaluator(prob.model, pp)
+        evaluate = _ActiveEvaluator(pp.model, pp)
         xp = x.to(pp.g.dtype)
 
         def product(q: torch.Tensor) -> torch.Tensor:

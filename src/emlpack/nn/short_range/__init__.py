@@ -19,6 +19,7 @@ import importlib
 import importlib.util
 
 from emlpack.nn.short_range.protocol import (
+    FrozenAnyDtype,
     HeldEdges,
     HoldsEdges,
     LengthHessian,
@@ -37,6 +38,7 @@ from emlpack.nn.short_range.schnet import SCHNET_DEFAULTS, SchNet
 
 __all__ = [
     "FamilyError",
+    "FrozenAnyDtype",
     "HeldEdges",
     "HoldsEdges",
     "LengthHessian",

@@ -51,6 +51,11 @@ module's class). Every caller has an exact generic path for a family without the
   (:func:`emlpack.nn.short_range.hessian.short_range_hessian`). Generic path: reverse over
   reverse on the short-range energy.
 
+* :class:`FrozenAnyDtype`: with frozen parameters the family evaluates in the dtype of its
+  input vectors whatever its parameters' dtype (SchNet casts its folded weights); the pair
+  relaxation's float32 phase then runs on the float64 model. Generic path: that phase runs
+  on a float32 copy of the model.
+
 Inference (forces, Hessians, relaxation, MD) freezes the parameters (``requires_grad=False``);
 a family may evaluate faster then (SchNet multiplies its linear maps out:
 :meth:`~emlpack.nn.short_range.schnet.SchNet.folded_weights`), with equal results up to
@@ -63,7 +68,8 @@ from typing import Protocol, runtime_checkable
 
 import torch
 
-__all__ = ["HeldEdges", "HoldsEdges", "LengthHessian", "ShortRange", "TabulatesEdges"]
+__all__ = ["FrozenAnyDtype", "HeldEdges", "HoldsEdges", "LengthHessian", "ShortRange",
+           "TabulatesEdges"]
 
 
 @runtime_checkable
@@ -138,3 +144,11 @@ class LengthHessian(Protocol):
         structure with edge lengths ``r`` (E,) and Jacobian ``jac = dr/dx`` (E, m);
         ``tangent_dtype``: dtype of the directional derivatives (None: ``r``'s)."""
         ...
+
+
+@runtime_checkable
+class FrozenAnyDtype(Protocol):
+    """Capability: with frozen parameters, evaluates in its input vectors' dtype whatever its
+    parameters' dtype (declared by the attribute ``frozen_any_dtype = True``)."""
+
+    frozen_any_dtype: bool

@@ -268,6 +268,10 @@ class SchNet(nn.Module):
     """Per-particle short-range energies (eV) of a batch of structures: the family
     ``"schnet"`` (:class:`~emlpack.nn.short_range.protocol.ShortRange`)."""
 
+    #: capability :class:`~emlpack.nn.short_range.protocol.FrozenAnyDtype`: the folded
+    #: weights are cast to the input's dtype
+    frozen_any_dtype = True
+
     def __init__(
         self,
         n_features: int = 512,
