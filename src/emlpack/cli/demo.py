@@ -292,7 +292,9 @@ def write_report(out: Path, times: dict, table: str, dipoles: list[dict],
                  pretrained: dict | None = None, ir: dict | None = None,
                  names: dict[str, tuple[str, str]] | None = None) -> Path:
     """``report.md``; ``names`` maps a structure's source to ``(key, formula)``."""
-    sr = cfg["model"]["short_range"]
+    from emlpack.nn.potential import nest_flat_keys
+
+    sr = nest_flat_keys(cfg["model"])["short_range"]  # (a config of either spelling)
     lines = [
         "# emlpack demo report", "",
         *_pretrained_lines(pretrained or {"status": "not installed", "name": PRETRAINED,
