@@ -72,7 +72,7 @@ DEFAULTS: dict = {
         # schedule; ignored when the run resumes from its own last.pt. The checkpoint's lineage
         # (what it was trained on) is carried into this run's checkpoints
         "init_weights": None,
-        # parameter-name prefixes kept fixed (e.g. [schnet.embedding] in a fine-tune)
+        # parameter-name prefixes kept fixed (e.g. [short_range.embedding] in a fine-tune)
         "freeze": [],
     },
     "output": {
