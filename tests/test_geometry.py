@@ -208,7 +208,7 @@ def test_schur_complement_is_the_relaxed_curvature():
 def test_cosine_cutoff_is_one_formula_for_numpy_and_torch():
     import torch
 
-    from emlpack.nn.schnet import cosine_cutoff as torch_cutoff
+    from emlpack.nn.short_range.common import cosine_cutoff as torch_cutoff
 
     r = np.linspace(0.0, 5.0, 101)
     f = cosine_cutoff(r, 4.0, 0.5)

@@ -1442,14 +1442,17 @@ def training_setup(best: Path) -> dict | None:
     (the sum of its epoch times); None without them."""
     import yaml
 
+    from emlpack.nn.potential import ModelConfig
+
     run = best.parent
     if not (run / "config.yaml").exists() or not (run / "log.csv").exists():
         return None
     cfg = yaml.safe_load((run / "config.yaml").read_text())
     rows = list(csv.DictReader((run / "log.csv").open()))
-    m, t = cfg["model"], cfg["training"]
-    return {**{k: m[k] for k in ("n_features", "n_filters", "n_rbf", "n_interactions",
-                                 "message_norm")},
+    # the short-range parameters (SchNet's; a run before the families saved them flat)
+    m, t = ModelConfig.from_dict(cfg["model"]).short_range, cfg["training"]
+    return {**{k: m.get(k) for k in ("n_features", "n_filters", "n_rbf", "n_interactions",
+                                     "message_norm")},
             "batch_size": t["batch_size"], "lr": t["lr"], "dtype": t.get("dtype"),
             "steps": int(rows[-1]["step"]) if rows else 0,
             "hours": sum(float(r["epoch_time"] or 0) for r in rows) / 3600}

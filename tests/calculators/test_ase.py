@@ -10,6 +10,7 @@ from emlpack.calculators.ase import EMLPCalculator
 from emlpack.io import read_structures, structure_to_atoms
 from tests.conftest import shared_path
 from tests.legacy.test_reference_fixtures import load_model
+from tests.nn.helpers import FAMILIES
 
 FMAX = 1e-7  # tight relaxation so finite differences of the BO energy are clean
 
@@ -145,3 +146,43 @@ def test_periodic_stress_is_the_strain_derivative_of_the_energy(model):
             e.append(strained.get_potential_energy())
         fd = (e[0] - e[1]) / (2 * h) / atoms.get_volume()
         assert stress[i, j] == pytest.approx(fd, abs=1e-7 * np.abs(stress).max() + 1e-9), (i, j)
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_every_family_gives_born_oppenheimer_forces_and_dipole(family):
+    """EMLPCalculator with a random model of every short-range family: the forces are minus
+    the gradient of the relaxed energy (central differences), the dipole minus its field
+    derivative, and the relaxed pair forces vanish."""
+    from tests.nn.helpers import random_model, water_molecule
+
+    model = random_model(family=family)
+    atoms = structure_to_atoms(water_molecule(np.array([0.05, -0.02, 0.03])))
+    atoms.calc = calc(model)
+    forces, dipole = atoms.get_forces(), atoms.get_dipole_moment()
+    assert np.abs(atoms.calc.results["pair_forces"]).max() < 1e-6
+
+    def relaxed_energy(positions=None, field=None):
+        a = atoms.copy()
+        a.info = {**atoms.info, "external_field": atoms.info["external_field"]
+                  if field is None else field}
+        if positions is not None:
+            a.positions = positions
+        a.calc = calc(model)
+        return a.get_potential_energy()
+
+    h = 1e-4
+    for atom, axis in [(0, 0), (2, 1)]:
+        e = []
+        for sign in (1, -1):
+            p = atoms.positions.copy()
+            p[atom, axis] += sign * h
+            e.append(relaxed_energy(positions=p))
+        assert -(e[0] - e[1]) / (2 * h) == pytest.approx(forces[atom, axis], abs=2e-6)
+    field0 = np.asarray(atoms.info["external_field"], float)
+    for axis in range(3):
+        e = []
+        for sign in (1, -1):
+            f = field0.copy()
+            f[axis] += sign * 1e-3
+            e.append(relaxed_energy(field=f))
+        assert -(e[0] - e[1]) / 2e-3 == pytest.approx(dipole[axis], abs=1e-6)

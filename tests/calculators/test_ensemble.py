@@ -352,3 +352,29 @@ def test_a_molecule_larger_than_the_training_molecules_is_warned_once(checkpoint
     atoms.calc = EMLPCalculator(load_pretrained("again", root=root), relax_pairs=False)
     atoms.get_potential_energy()
     assert atoms.calc.warnings == []
+
+
+def test_an_ensemble_of_two_families(tmp_path):
+    """Members of different short-range families in one ensemble (checkpoints in a folder):
+    the ensemble's energy and forces are the mean of its members', each relaxing its own
+    pairs."""
+    from tests.nn.helpers import FAMILIES, random_model, water_molecule
+
+    folder = tmp_path / "mixed"
+    folder.mkdir()
+    for k, family in enumerate(FAMILIES[:2]):
+        save_model(random_model(family=family), folder / f"model-{k}.pt")
+    s = water_molecule()
+    atoms = structure_to_atoms(s)
+    atoms.calc = EMLPCalculator(folder, relax_options=RelaxOptions(fmax=1e-8))
+    assert [m.model.config.family for m in atoms.calc.ensemble.members] == list(FAMILIES[:2])
+    single = []
+    for path in sorted(folder.glob("*.pt")):
+        a = structure_to_atoms(s)
+        a.calc = EMLPCalculator(path, relax_options=RelaxOptions(fmax=1e-8))
+        single.append((a.get_potential_energy(), a.get_forces()))
+    assert atoms.get_potential_energy() == pytest.approx(np.mean([x[0] for x in single]),
+                                                         abs=1e-8)
+    np.testing.assert_allclose(atoms.get_forces(), np.mean([x[1] for x in single], axis=0),
+                               atol=1e-6)
+    assert atoms.calc.results["energy_std"] > 1e-3

@@ -301,7 +301,8 @@ def test_convert_reference_checkpoint(tmp_path, size, molecules, periodic):
 @pytest.mark.parametrize("size", ["small", "paper"])
 def test_frozen_inference_path(size, molecules, periodic):
     """With frozen parameters (relaxation, MD, response) SchNet runs a folded evaluation
-    (nn/schnet.py): it must reproduce the reference just like the trainable path."""
+    (nn/short_range/schnet.py): it must reproduce the reference just like the trainable
+    path."""
     model = load_model(size)
     model.requires_grad_(False)
     if size == "small":

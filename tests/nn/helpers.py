@@ -8,9 +8,13 @@ import math
 import numpy as np
 import torch
 from scipy.special import erfc
+from torch import nn
 
 from emlpack.nn import EMLP, ModelConfig
-from emlpack.structure import Structure
+from emlpack.nn.scatter import segment_sum
+from emlpack.nn.short_range import families, register_family
+from emlpack.nn.short_range.common import cosine_cutoff, edge_lengths, shifted_softplus
+from emlpack.structure import PAIR_NUMBER, Structure
 from emlpack.units import COULOMB_EV_A, FIELD_AU_IN_V_PER_A, SQRT_PI
 from tests.conftest import shared_path
 
@@ -24,28 +28,110 @@ STENCIL_OFFSETS = np.array([-2.0, -1.0, 1.0, 2.0])
 STENCIL_WEIGHTS = np.array([1.0, -8.0, 8.0, -1.0]) / 12.0
 
 
-def random_model(seed: int = 0, dtype=torch.float64, **config) -> EMLP:
-    """Small EMLP with seeded random weights and N(0, 0.1^2) biases (so biases matter).
+# ---------------------------------------------------------------------- a test-only family
+class RadialPairs(nn.Module):
+    """Short-range family ``"radial"`` for the tests: a pair-density network with none of
+    SchNet's capabilities (no held edges, no table, no edge-length Hessian), so that every
+    generic path of the package runs with it.
+
+    Per particle a scalar density ``rho_i = sum_j g(r_ij) * W[Z_j] / J`` and a vector density
+    ``v_i = sum_j d_ij g(r_ij) * U[Z_j] / J`` (``d_ij = r_j - r_i``, K channels, ``g``: K
+    Gaussians times the cosine cutoff, ``J = norm``); ``E_i = e[Z_i] + MLP([rho_i,
+    |v_i|^2])``. Invariant
+    under rotations (the vector density enters through its norm) and smooth at d = 0."""
+
+    def __init__(self, cutoff: float, cutoff_transition: float, n_features: int = 8,
+                 n_hidden: int = 16, norm: float = 10.0) -> None:
+        super().__init__()
+        self.norm = norm
+        self.cutoff, self.cutoff_transition = cutoff, cutoff_transition
+        k = n_features
+        self.register_buffer("centers", torch.linspace(0.0, cutoff, k, dtype=torch.float64),
+                             persistent=False)
+        self.width = cutoff / k
+        self.scalar = nn.Embedding(PAIR_NUMBER + 1, k)
+        self.vector = nn.Embedding(PAIR_NUMBER + 1, k)
+        self.offset = nn.Embedding(PAIR_NUMBER + 1, 1)
+        self.hidden = nn.Linear(2 * k, n_hidden)
+        self.out = nn.Linear(n_hidden, 1)
+
+    def forward(self, numbers, vectors, i, j):
+        """Atomic energies (N,) (eV) from the half-list edge vectors (E, 3) (Å)."""
+        r = edge_lengths(vectors)
+        g = torch.exp(-0.5 * ((r[:, None] - self.centers.to(r.dtype)) / self.width) ** 2)
+        g = g * cosine_cutoff(r, self.cutoff, self.cutoff_transition)[:, None]  # (E, K)
+        n = numbers.numel()
+        w = self.scalar(numbers).to(r.dtype) / self.norm
+        u = self.vector(numbers).to(r.dtype) / self.norm
+        rho = segment_sum(torch.cat([g * w[j], g * w[i]]), torch.cat([i, j]), n)
+        gu = torch.cat([g * u[j], g * u[i]])  # (2E, K)
+        d = torch.cat([vectors, -vectors])  # from each particle to its neighbour
+        v = segment_sum(gu[:, :, None] * d[:, None, :], torch.cat([i, j]), n)  # (N, K, 3)
+        h = torch.cat([rho, (v * v).sum(-1)], 1)
+        e = self.out(shifted_softplus(self.hidden(h))).squeeze(-1)
+        return e + self.offset(numbers).to(r.dtype).squeeze(-1)
+
+
+register_family("radial", RadialPairs)
+
+#: every registered family, the test-only ``radial`` included (physics tests run over these)
+FAMILIES = families()
+
+#: small parameters per family (fast, every part exercised); a family without an entry is
+#: tested with its defaults
+FAMILY_PARAMS = {"schnet": SMALL, "radial": {"n_features": 6, "n_hidden": 12}}
+
+
+def random_model(seed: int = 0, dtype=torch.float64, family: str = "schnet",
+                 **config) -> EMLP:
+    """Small EMLP of ``family`` with seeded random weights and N(0, 0.1^2) biases (so biases
+    matter); ``config``: other :class:`ModelConfig` fields.
 
     Dense weights are N(0, 4/fan_in): with torch's default initialisation (or the reference
     fixture's weights) the SchNet forces are only ~1e-3 eV/Å, too small next to the
     electrostatic forces for the tests to be sensitive; here they are ~1 eV/Å.
     """
     torch.manual_seed(seed)
-    model = EMLP(ModelConfig(**{**SMALL, **config}))
+    params = FAMILY_PARAMS.get(family, {})
+    model = EMLP(ModelConfig(family=family, short_range=params, **config))
     with torch.no_grad():
         for name, p in model.named_parameters():
             if name.endswith("bias"):
                 p.normal_(0.0, 0.1)
-            elif p.ndim == 2 and not name.startswith("schnet.embedding"):
+            elif p.ndim == 2 and not name.startswith("short_range.embedding"):
                 p.normal_(0.0, 2.0 / math.sqrt(p.shape[1]))
     return model.to(dtype)
 
 
+def as_format_1(path):
+    """Rewrite the SchNet checkpoint ``path`` as emlpack wrote it before the short-range
+    families (format 1: flat model config, ``schnet.*`` weights; a training config in the
+    metadata with a flat model section too); returns ``path``."""
+    payload = torch.load(path, map_location="cpu", weights_only=True)
+    assert payload["config"]["family"] == "schnet"
+
+    def flat(config: dict) -> dict:
+        config = dict(config)
+        family, params = config.pop("family"), config.pop("short_range")
+        assert family == "schnet"
+        return {**params, **config}
+
+    payload["format_version"] = 1
+    payload["config"] = flat(payload["config"])
+    payload["state_dict"] = {"schnet." + k.removeprefix("short_range."): v
+                             for k, v in payload["state_dict"].items()}
+    meta = payload.get("metadata") or {}
+    if isinstance(meta.get("config"), dict) and "model" in meta["config"]:
+        meta["config"] = {**meta["config"], "model": flat(meta["config"]["model"])}
+    torch.save(payload, path)
+    return path
+
+
 def zero_short_range(model: EMLP) -> EMLP:
-    """The same model with every SchNet parameter zero: atomic energies vanish identically."""
+    """The same model with every short-range parameter zero: for SchNet (and the test
+    family) the atomic energies then vanish identically."""
     with torch.no_grad():
-        for p in model.schnet.parameters():
+        for p in model.short_range.parameters():
             p.zero_()
     return model
 

@@ -88,3 +88,18 @@ def test_float32_agrees_with_float64(with_glycine):
     np.testing.assert_allclose(f32, f64, atol=2e-4 * max(1.0, np.abs(f64).max()))
     np.testing.assert_allclose(o32["stress"].numpy(), o64["stress"].numpy(), atol=1e-5)
     assert np.abs(e32 - e64).max() > 0  # really computed in single precision
+
+
+def test_a_subgraph_is_the_batch_of_its_structures():
+    """``Graph.subgraph(keep)``: the kept structures' particles, edges, Coulomb pairs and k
+    vectors, renumbered; its energies and forces are those of a batch of only them."""
+    model = random_model()
+    structures = _mixed(False)
+    keep = torch.tensor([k % 2 == 0 for k in range(len(structures))])
+    sub = model.graph(structures).subgraph(keep)
+    alone = model.graph([s for s, k in zip(structures, keep, strict=True) if k])
+    for name in ("numbers", "batch", "edge_i", "edge_j", "coulomb_i", "kvec_n", "n_pairs"):
+        assert torch.equal(getattr(sub, name), getattr(alone, name)), name
+    a, b = model(sub), model(alone)
+    torch.testing.assert_close(a["energy"], b["energy"], rtol=0, atol=1e-12)
+    torch.testing.assert_close(a["forces"], b["forces"], rtol=0, atol=1e-12)

@@ -1,4 +1,5 @@
-"""The tabulated SchNet filters (:class:`emlpack.nn.schnet.FilterTable`) equal the filter
+"""The tabulated SchNet filters (:class:`emlpack.nn.short_range.schnet.FilterTable`) equal the
+filter
 network: values and first derivatives at any edge length, zero beyond the cutoff, nodes at the
 ends of the cutoff switch, and they refuse second derivatives instead of returning wrong ones."""
 
@@ -15,7 +16,7 @@ def schnet():
     model = random_model(seed=3, cutoff=4.0, cutoff_transition=0.7)
     for p in model.parameters():
         p.requires_grad_(False)
-    return model.schnet
+    return model.short_range
 
 
 def _lengths(schnet) -> torch.Tensor:

@@ -1,5 +1,6 @@
 """Invariance and covariance: rotation, translation, permutation, choice of unit cell,
-periodic images, supercells."""
+periodic images, supercells; for every registered short-range family (the ``model`` fixture,
+:data:`tests.nn.helpers.FAMILIES`)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import pytest
 
 from emlpack.structure import Structure
 from tests.nn.helpers import (
+    FAMILIES,
     all_forces,
     ammonium,
     glycine,
@@ -29,9 +31,9 @@ CRYSTALS = {
 }
 
 
-@pytest.fixture(scope="module")
-def model():
-    return random_model()
+@pytest.fixture(scope="module", params=FAMILIES)
+def model(request):
+    return random_model(family=request.param)
 
 
 def _moved(s: Structure, positions: np.ndarray, **changes) -> Structure:
@@ -157,15 +159,17 @@ def _supercell(s: Structure, reps=(2, 1, 1)) -> Structure:
     )
 
 
+@pytest.mark.parametrize("family", FAMILIES)
 @pytest.mark.parametrize("gcut", [None, 1.2])
 @pytest.mark.parametrize("name", list(CRYSTALS))
-def test_supercell_doubles_energy(name, gcut):
+def test_supercell_doubles_energy(name, gcut, family):
     """2x1x1 supercell: exactly twice the energy, the same forces and stress, for any gcut.
 
     The supercell's k set (same |k| cutoff) contains every k of the cell, where its structure
     factor is twice the cell's, plus new k at which the structure factor vanishes, so the
     Ewald sum doubles exactly, not only at convergence."""
-    model = random_model() if gcut is None else random_model(gcut=gcut)
+    model = random_model(family=family) if gcut is None else random_model(family=family,
+                                                                           gcut=gcut)
     s = CRYSTALS[name]()
     sup = _supercell(s)
     a, b = model.evaluate(s), model.evaluate(sup)

@@ -3,7 +3,8 @@
 Finite differences use a 4th-order central stencil (h = 2e-4 Å or 5e-5 strain, reduced so
 that no edge crosses a kink of the cosine cutoff at 3.5 or 4 Å) with the topology of the
 undisplaced structure held fixed, as in the model's derivatives. Their error in float64 is
-~1e-9 eV/Å (round-off of energies ~1e-13 eV; truncation ~1e-11).
+~1e-9 eV/Å (round-off of energies ~1e-13 eV; truncation ~1e-11). Forces and stress are checked
+for every registered short-range family (:data:`tests.nn.helpers.FAMILIES`).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import numpy as np
 import pytest
 
 from tests.nn.helpers import (
+    FAMILIES,
     all_forces,
     ammonium,
     eqm7_molecule,
@@ -52,18 +54,19 @@ def _particles(s):
     return list(range(n)) if n <= 20 else GLYCINE_PARTICLES
 
 
-def _models(name):
-    yield random_model()
-    if name.startswith(("c2h6o", "glycine")):
+def _models(name, family):
+    yield random_model(family=family)
+    if family == "schnet" and name.startswith(("c2h6o", "glycine")):
         yield reference_model()
 
 
 # ---------------------------------------------------------------------- forces
+@pytest.mark.parametrize("family", FAMILIES)
 @pytest.mark.parametrize("name", list(MOLECULES) + list(CRYSTALS))
-def test_forces_match_finite_differences(name):
+def test_forces_match_finite_differences(name, family):
     s = {**MOLECULES, **CRYSTALS}[name]()
     idx = _particles(s)
-    for model in _models(name):
+    for model in _models(name, family):
         out = model.evaluate(s, stress=False)
         forces = all_forces(out)[idx]
         fd = fd_forces(model, s, idx)
@@ -74,13 +77,14 @@ def test_forces_match_finite_differences(name):
         assert np.abs(out["pair_forces"]).max() > 0.1
 
 
+@pytest.mark.parametrize("family", FAMILIES)
 @pytest.mark.parametrize("name", ["methane_field", "water_crystal", "glycine_p1"])
-def test_short_range_forces_match_finite_differences(name):
-    """The SchNet forces alone (model minus the same model with SchNet zeroed), to make sure
-    the comparison above is not dominated by the electrostatics."""
+def test_short_range_forces_match_finite_differences(name, family):
+    """The short-range forces alone (model minus the same model with its short range zeroed),
+    to make sure the comparison above is not dominated by the electrostatics."""
     s = {**MOLECULES, **CRYSTALS}[name]()
     idx = _particles(s)
-    model = random_model()
+    model = random_model(family=family)
     bare = zero_short_range(copy.deepcopy(model))
     sr = all_forces(model.evaluate(s, stress=False)) - all_forces(bare.evaluate(s, stress=False))
     fd = fd_forces(model, s, idx, part="energy_short_range")
@@ -89,10 +93,11 @@ def test_short_range_forces_match_finite_differences(name):
 
 
 # ---------------------------------------------------------------------- stress
+@pytest.mark.parametrize("family", FAMILIES)
 @pytest.mark.parametrize("name", list(CRYSTALS))
-def test_stress_matches_finite_strain(name):
+def test_stress_matches_finite_strain(name, family):
     s = CRYSTALS[name]()
-    for model in _models(name):
+    for model in _models(name, family):
         out = model.evaluate(s, stress=True)
         volume = abs(np.linalg.det(s.cell))
         # dE/d(eps) of the total energy and of the energy without the field term

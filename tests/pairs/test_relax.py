@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from emlpack.io import read_structures
 from emlpack.pairs.relax import relax_pairs
 from tests.conftest import shared_path
 from tests.legacy.test_reference_fixtures import load_model
+from tests.nn.helpers import FAMILIES
 
 
 @pytest.fixture(scope="module")
@@ -144,3 +146,72 @@ def test_missing_edges_are_found_in_molecules_and_through_the_cell_boundary(mode
         inside[1, 0] = x_in
         assert _missing_edges(model, start, inside), pbc
         assert not _missing_edges(model, start.copy(pairs=inside), start.pairs), pbc
+
+
+# ---------------------------------------------------------------------- every family
+@pytest.mark.parametrize("family", FAMILIES)
+def test_every_family_relaxes_to_a_stationary_minimum(family):
+    """A random model of every short-range family (the generic paths for a family without
+    SchNet's held filters, table and closed-form Hessian): a batch of water and methane
+    relaxes to stationary pairs (the model's own forces), the same minima as one by one, with
+    the smallest exact pair curvature positive; the exact-Newton method reaches them too."""
+    from tests.nn.helpers import methane, random_model, water_molecule
+
+    model = random_model(family=family)
+    starts = [water_molecule(), methane()]
+    batch = relax_pairs(model, starts, fmax=1e-7)
+    exact = relax_pairs(model, starts, fmax=1e-7, initial_hessian="exact")
+    for s, rb, re in zip(starts, batch, exact, strict=True):
+        assert rb.converged and re.converged, (rb.reason, re.reason)
+        out = model.evaluate(s.copy(pairs=rb.pairs))
+        assert np.linalg.norm(out["pair_forces"], axis=1).max() < 1e-7
+        assert out["energy"] == pytest.approx(rb.energy, abs=1e-10)
+        assert rb.energy < model.evaluate(s)["energy"] - 1e-3
+        assert rb.min_curvature > 0
+        one = relax_pairs(model, s, fmax=1e-7)[0]
+        for other in (re, one):  # the same minimum (the pairs possibly in another order)
+            assert other.energy == pytest.approx(rb.energy, abs=1e-10)
+            d = np.linalg.norm(other.pairs[:, None] - rb.pairs[None], axis=-1)
+            assert d.min(1).max() < 1e-5 and d.min(0).max() < 1e-5
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_fast_pair_hessians_equal_the_reverse_passes_for_every_family(family):
+    """``pair_hessian`` fast (the family's short-range block: SchNet's closed form, others by
+    reverse over reverse on the short range, plus the analytic electrostatics) equals one
+    reverse pass of the whole energy per column, off the minimum, molecule and crystal."""
+    import torch
+
+    from emlpack.pairs.relax import _PairProblem
+    from tests.nn.helpers import random_model, water_crystal, water_molecule
+
+    model = random_model(family=family)
+    for p in model.parameters():
+        p.requires_grad_(False)
+    g = model.graph([water_molecule(), water_crystal()], dtype=torch.float64)
+    prob = _PairProblem(model, g)
+    assert (prob.held is not None) == (family == "schnet")
+    x = g.positions[prob.pair_idx].clone()
+    x = x + 0.05 * torch.sin(torch.arange(x.numel(), dtype=x.dtype)).reshape(x.shape)
+    fast, reverse = prob.hessians(x), prob.hessians(x, method="reverse")
+    scale = float(reverse.abs().max())
+    torch.testing.assert_close(fast, reverse, rtol=0, atol=1e-11 * scale)
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_the_float32_phase_reaches_the_float64_minima_for_every_family(family):
+    """A batch of 128 pairs (32 waters) takes the float32 start (a family without the
+    capability ``FrozenAnyDtype`` on a float32 copy of the model): the same minima as float64
+    throughout."""
+    from tests.nn.helpers import random_model, water_molecule
+
+    model = random_model(family=family)
+    starts = [water_molecule()] * 32
+    assert sum(s.n_pairs for s in starts) >= 128
+    mixed = relax_pairs(model, starts, fmax=1e-7, check_curvature=False)
+    plain = relax_pairs(model, starts, fmax=1e-7, check_curvature=False, float32_above=0)
+    for a, b in zip(mixed, plain, strict=True):
+        assert a.converged and b.converged, (a.reason, b.reason)
+        assert a.energy == pytest.approx(b.energy, abs=1e-9)
+        np.testing.assert_allclose(a.pairs, b.pairs, atol=1e-5)
+    assert next(model.parameters()).dtype == torch.float64  # the caller's model unchanged

@@ -294,7 +294,7 @@ def test_held_core_core_filters_equal_plain_evaluation(which, small, trained):
     structures = mol + crystal if set(model.config.elements) >= {1, 6, 7, 8} else mol
     with _frozen(model):
         g = model.graph(structures, dtype=torch.float64)
-        plain = _PairProblem(model, g, hold_filters=False)
+        plain = _PairProblem(model, g, hold_edges=False)
         held = _PairProblem(model, g)
         assert plain.held is None and held.held is not None
         assert 0 < len(held.held.i) < len(g.edge_i)
@@ -365,7 +365,7 @@ def test_closest_pair_distance_uses_the_minimum_image():
                        np.array([[0.37, 0.0, 0.0]]))
     model = load_model("small")
     g = model.graph([crystal, molecule, single], dtype=torch.float64)
-    prob = _PairProblem(model, g, hold_filters=False)
+    prob = _PairProblem(model, g, hold_edges=False)
     d = prob.closest_pair_distance(g.positions[prob.pair_idx])
     np.testing.assert_allclose(d[:2].numpy(), [0.2, 0.3], atol=1e-12)
     assert torch.isinf(d[2])

@@ -28,7 +28,7 @@ class DoubleWell(EMLP):
 
 @pytest.fixture(scope="module")
 def well():
-    return DoubleWell(ModelConfig(**SMALL)).double()
+    return DoubleWell(ModelConfig(short_range=SMALL)).double()
 
 
 def _on_the_ridge(*pairs) -> Structure:

@@ -13,19 +13,25 @@ from emlpack.properties.hessian import extended_gradient, extended_hessian
 from emlpack.properties.optimize import optimize
 from emlpack.properties.response import crystal_response_from_hessian, improper_piezo, voigt_piezo
 from emlpack.units import EPSILON0_E_PER_V_A
-from tests.nn.helpers import STENCIL_OFFSETS, STENCIL_WEIGHTS, random_model, water_crystal
+from tests.nn.helpers import (
+    FAMILIES,
+    STENCIL_OFFSETS,
+    STENCIL_WEIGHTS,
+    random_model,
+    water_crystal,
+)
 from tests.properties.toy import spring_model
 
 FIELD_STEP = 2e-3  # V/Å
 STRAIN_STEP = 2e-4
 
 
-@pytest.fixture(scope="module")
-def crystal():
+@pytest.fixture(scope="module", params=FAMILIES)
+def crystal(request):
     """Two water molecules in a triclinic cell, springs within and between molecules, internal
-    coordinates relaxed at the fixed cell."""
+    coordinates relaxed at the fixed cell; a short range of every family."""
     s = water_crystal()
-    model = spring_model(s, core_cutoff=3.5, pair_cutoff=2.0)
+    model = spring_model(s, core_cutoff=3.5, pair_cutoff=2.0, family=request.param)
     res = optimize(model, s, fmax=1e-10)
     assert res.converged and res.min_curvature > 0, res.reason
     s = res.structure

@@ -1,6 +1,6 @@
 """The extended Hessian (positions or fractional coordinates, cell, field) of
 emlpack.properties.response against the model's forces/virial and finite differences of the
-gradient."""
+gradient, for every registered short-range family."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import torch
 
 from emlpack.properties.hessian import extended_hessian
 from tests.nn.helpers import (
+    FAMILIES,
     STENCIL_OFFSETS,
     STENCIL_WEIGHTS,
     all_forces,
@@ -68,8 +69,9 @@ def _fd_rows(model, s, x0, rows, steps):
     return np.einsum("rkv,k->rv", grads, STENCIL_WEIGHTS) / np.asarray(steps)[:, None]
 
 
-def test_molecule_extended_hessian():
-    model = random_model()
+@pytest.mark.parametrize("family", FAMILIES)
+def test_molecule_extended_hessian(family):
+    model = random_model(family=family)
     s = ammonium(FIELD)
     n = s.n_cores + s.n_pairs
     grad, hess = (t.numpy() for t in extended_hessian(model, s))
@@ -96,9 +98,10 @@ CRYSTALS = {
 }
 
 
+@pytest.mark.parametrize("family", FAMILIES)
 @pytest.mark.parametrize("name", list(CRYSTALS))
-def test_crystal_extended_hessian(name):
-    model = random_model()
+def test_crystal_extended_hessian(name, family):
+    model = random_model(family=family)
     s = CRYSTALS[name]()
     n = s.n_cores + s.n_pairs
     grad, hess = (t.numpy() for t in extended_hessian(model, s))

@@ -14,11 +14,11 @@ from emlpack.nn.electrostatics import (
     ewald_reciprocal,
     ewald_reciprocal_hessian_fractional,
 )
-from emlpack.nn.schnet import cosine_cutoff, shifted_softplus
+from emlpack.nn.short_range.common import cosine_cutoff, shifted_softplus
 from emlpack.properties.hessian import extended_hessian
 from tests.conftest import shared_path
 from tests.legacy.test_reference_fixtures import FIX, fixture_structure, load_model
-from tests.nn.helpers import ammonium, glycine, random_model, water_crystal
+from tests.nn.helpers import FAMILIES, ammonium, glycine, random_model, water_crystal
 
 FIELD = np.array([0.2, -0.3, 0.25])
 
@@ -46,10 +46,13 @@ CASES = {
 }
 
 
+@pytest.mark.parametrize("family", FAMILIES)
 @pytest.mark.parametrize("name", list(CASES))
-def test_fast_equals_reference_random_model(name):
-    """Random weights with a SchNet part comparable to the electrostatics (~1 eV/Å forces)."""
-    assert_same(random_model(), CASES[name]())
+def test_fast_equals_reference_random_model(name, family):
+    """Random weights with a short-range part comparable to the electrostatics (~1 eV/Å
+    forces), every family (SchNet: closed form; others: their short range alone by reverse
+    over reverse, beside the closed-form electrostatics)."""
+    assert_same(random_model(family=family), CASES[name]())
 
 
 def test_fast_equals_reference_fixtures():
@@ -81,7 +84,7 @@ def test_unknown_method():
 # ---------------------------------------------------------------------- the pieces
 def test_filter_taylor_matches_autograd():
     model = random_model()
-    schnet = model.schnet
+    schnet = model.short_range
     r = torch.linspace(0.3, 4.2, 57, dtype=torch.float64)  # across the cutoff switch
     taylor = schnet.filter_taylor(r)
     for t, block in enumerate(schnet.interactions):
@@ -155,18 +158,21 @@ def test_fast_equals_reference_benchmark_beta_glycine():
 
 def test_schnet_hessian_chunks():
     """Directions processed in several chunks give the same matrix as one chunk."""
-    from emlpack.nn.schnet_hessian import schnet_edge_hessian
-    from emlpack.properties.hessian import _edge_derivatives, _energy_function
+    from emlpack.nn.short_range.hessian import edge_derivatives
+    from emlpack.nn.short_range.schnet_hessian import schnet_edge_hessian
 
     model = random_model()
     s = water_crystal(FIELD)
     g = model.graph(s)
-    _, x0 = _energy_function(model, s, torch.float64)
-    r, jac, _ = _edge_derivatives(model, g, x0, True)
+    cell0 = g.cell[0]
+    frac0 = torch.linalg.solve(cell0.T, g.positions.T).T
+    x0 = torch.cat([frac0.reshape(-1), cell0.reshape(-1)])
+    r, jac, _ = edge_derivatives(model, g, x0, True)
+    n_filters = model.config.short_range["n_filters"]
     with torch.no_grad():
-        g1, h1 = schnet_edge_hessian(model.schnet, g.numbers, r, g.edge_i, g.edge_j, jac)
-        g2, h2 = schnet_edge_hessian(model.schnet, g.numbers, r, g.edge_i, g.edge_j, jac,
-                                     max_numbers=30 * model.config.n_filters * g.n_particles * 7)
+        g1, h1 = schnet_edge_hessian(model.short_range, g.numbers, r, g.edge_i, g.edge_j, jac)
+        g2, h2 = schnet_edge_hessian(model.short_range, g.numbers, r, g.edge_i, g.edge_j, jac,
+                                     max_numbers=30 * n_filters * g.n_particles * 7)
     assert torch.equal(g1, g2)
     assert float((h1 - h2).abs().max()) <= 1e-13 * float(h1.abs().max())
 

@@ -18,7 +18,13 @@ from emlpack.properties.response import (
     polarizability_from_hessian,
 )
 from emlpack.units import COULOMB_EV_A, REFERENCE_GAMMA
-from tests.nn.helpers import STENCIL_OFFSETS, STENCIL_WEIGHTS, water_molecule
+from tests.nn.helpers import (
+    FAMILIES,
+    STENCIL_OFFSETS,
+    STENCIL_WEIGHTS,
+    random_model,
+    water_molecule,
+)
 from tests.properties.toy import spring_model, toy_atom, toy_atom_polarizability
 
 FIELD_STEP = 2e-3  # V/Å
@@ -182,3 +188,22 @@ def test_an_optimum_with_merged_pairs_is_a_failure():
     assert res.iterations < 100
     healthy = optimize(model, s, fmax=1e-4)
     assert healthy.converged and healthy.pair_check == "" and healthy.reason == ""
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_pair_polarizability_of_every_family_matches_finite_fields(family):
+    """A plain EMLP of every short-range family (the fast extended Hessian: SchNet's closed
+    form, other families' short range by reverse over reverse): the polarizability at fixed
+    cores equals d mu / d F of the relaxed pairs by 4th-order central differences."""
+    model = random_model(family=family)
+    s = _relaxed_pairs(model, water_molecule())
+    alpha = molecule_response(model, s, relax_cores=False).polarizability
+    fd = np.zeros((3, 3))
+    for j in range(3):
+        for o, w in zip(STENCIL_OFFSETS, STENCIL_WEIGHTS, strict=True):
+            field = np.zeros(3)
+            field[j] = o * FIELD_STEP
+            fd[:, j] += w * _relaxed_pairs(model, s.copy(field=field)).dipole() / FIELD_STEP
+    assert np.abs(alpha).max() > 0.1
+    np.testing.assert_allclose(alpha, fd, rtol=1e-5, atol=1e-6 * np.abs(alpha).max())
+    np.testing.assert_allclose(alpha, alpha.T, atol=1e-10 * np.abs(alpha).max())

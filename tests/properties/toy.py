@@ -19,7 +19,7 @@ import torch
 from emlpack.nn import EMLP, ModelConfig
 from emlpack.structure import Structure
 from emlpack.units import COULOMB_EV_A, REFERENCE_GAMMA, SQRT_PI
-from tests.nn.helpers import SMALL
+from tests.nn.helpers import FAMILY_PARAMS, SMALL
 
 
 class SpringModel(EMLP):
@@ -91,16 +91,19 @@ def spring_network(structure: Structure, k_pair: float = 20.0, k_core: float = 2
 
 
 def spring_model(structure: Structure, seed: int = 0, weight_scale: float = 0.3,
-                 **kw) -> SpringModel:
-    """Small random SchNet (weights N(0, (scale^2)/fan_in)) plus :func:`spring_network`."""
+                 family: str = "schnet", **kw) -> SpringModel:
+    """Small random short range of ``family`` (SchNet by default; weights N(0,
+    (scale^2)/fan_in)) plus :func:`spring_network`."""
     torch.manual_seed(seed)
     elements = tuple(sorted(set(structure.numbers.tolist())))
-    model = SpringModel(ModelConfig(**SMALL, elements=elements), spring_network(structure, **kw))
+    config = ModelConfig(family=family, short_range=FAMILY_PARAMS.get(family, {}),
+                         elements=elements)
+    model = SpringModel(config, spring_network(structure, **kw))
     with torch.no_grad():
         for name, p in model.named_parameters():
             if name.endswith("bias"):
                 p.normal_(0.0, 0.05)
-            elif p.ndim == 2 and not name.startswith("schnet.embedding"):
+            elif p.ndim == 2 and not name.startswith("short_range.embedding"):
                 p.normal_(0.0, weight_scale / math.sqrt(p.shape[1]))
     return model.double()
 
@@ -108,9 +111,10 @@ def spring_model(structure: Structure, seed: int = 0, weight_scale: float = 0.3,
 def toy_atom(k: float, z: int = 4) -> tuple[SpringModel, Structure]:
     """One core (Be: charge +2) and one pair on a spring ``k`` (eV/Å²), SchNet switched off."""
     s = Structure([z], [[0.1, -0.2, 0.3]], [[0.1, -0.2, 0.3]])
-    model = SpringModel(ModelConfig(**SMALL, elements=(z,)), [(0, 1, (0, 0, 0), k, 0.0)])
+    model = SpringModel(ModelConfig(short_range=SMALL, elements=(z,)),
+                        [(0, 1, (0, 0, 0), k, 0.0)])
     with torch.no_grad():
-        for p in model.schnet.parameters():
+        for p in model.short_range.parameters():
             p.zero_()
     return model.double(), s
 

@@ -20,7 +20,7 @@ from emlpack.nn import EMLP, ModelConfig
 from emlpack.train.loss import LossWeights, Metrics, combine, loss_terms, predict
 from tests.conftest import shared_path
 
-SMALL = ModelConfig(n_features=16, n_filters=8, n_rbf=8, n_interactions=2)
+SMALL = ModelConfig(short_range={"n_features": 16, "n_filters": 8, "n_rbf": 8, "n_interactions": 2})
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +81,7 @@ def test_gradient_through_live_hydrides_matches_finite_differences(hydrides, fra
         return combine(loss_terms(predict(model, batch, hydrides, create_graph=True), batch),
                        weights)
 
-    param = model.schnet.output[0].bias
+    param = model.short_range.output[0].bias
     g = torch.autograd.grad(loss(), param)[0]
     k, h = 0, 1e-5
     param.data[k] += h

@@ -23,6 +23,7 @@ from emlpack.nn.checkpoint import load_model, read_checkpoint
 from emlpack.train.config import load_config
 from emlpack.train.trainer import train, train_ensemble
 from tests.conftest import shared_path
+from tests.nn.helpers import as_format_1  # also registers the tests' family "radial"
 
 TINY = {
     "model": {"n_features": 16, "n_filters": 8, "n_rbf": 8, "n_interactions": 1},
@@ -89,7 +90,7 @@ def test_training_reduces_the_loss_and_writes_the_run(tmp_path, small_data):
     saved = yaml.safe_load((run / "config.yaml").read_text())
     assert saved["training"]["max_epochs"] == 4
     model = load_model(best)  # weights_only loading of the model part
-    assert model.config.n_features == 16
+    assert model.config.short_range["n_features"] == 16
     meta = read_checkpoint(run / "last.pt")["metadata"]
     assert meta["training"]["epoch"] == 4 and meta["reference"]["kind"] == "hydrides"
     # the training domain the calculator checks: elements and the largest molecule
@@ -180,6 +181,75 @@ def test_a_run_on_the_gpu_matches_the_cpu_and_resumes_on_the_cpu(tmp_path, small
         torch.testing.assert_close(w_cpu[key], w_gpu[key], rtol=1e-6, atol=1e-9)
 
 
+#: the tests' short-range family without SchNet's capabilities (tests/nn/helpers.py)
+RADIAL = ["model.family=radial", "model.short_range.n_features=6"]
+
+
+def test_another_family_trains_resumes_exactly_and_loads(tmp_path, small_data, caplog):
+    """``model.family=radial`` on a SchNet config: the loss falls, a run stopped after
+    epoch 2 and resumed ends as an uninterrupted one, and best.pt loads as that family."""
+    import logging
+
+    with caplog.at_level(logging.WARNING, logger="emlpack.train.config"):
+        ref_cfg = load_config(_config(tmp_path, small_data, "ref"),
+                              [*RADIAL, "training.max_epochs=3"])
+    assert "are not used" in caplog.text  # the file's SchNet parameters
+    train(ref_cfg)
+    train(load_config(_config(tmp_path, small_data, "run"), [*RADIAL, "training.max_epochs=2"]))
+    best = train(load_config(_config(tmp_path, small_data, "run"),
+                             [*RADIAL, "training.max_epochs=3"]))
+    a, b = _log(tmp_path / "ref"), _log(tmp_path / "run")
+    assert float(a[-1]["val_loss"]) < float(a[0]["val_loss"])
+    assert [r["epoch"] for r in a] == [r["epoch"] for r in b] == ["1", "2", "3"]
+    for ra, rb in zip(a, b, strict=True):
+        for key in ("train_loss", "val_loss", "step"):
+            assert float(ra[key]) == pytest.approx(float(rb[key]), rel=1e-6), key
+    model = load_model(best)
+    assert model.config.family == "radial" and model.config.short_range["n_features"] == 6
+
+
+def test_a_run_started_before_the_families_resumes(tmp_path, small_data):
+    """A run whose last.pt was written in format 1 (flat model config in the checkpoint and in
+    its training metadata, ``schnet.*`` weights) resumes with today's config of the same file
+    (compared normalised) and ends as an uninterrupted run."""
+    train(load_config(_config(tmp_path, small_data, "ref"), ["training.max_epochs=3"]))
+    train(load_config(_config(tmp_path, small_data, "run"), ["training.max_epochs=2"]))
+    for name in ("last.pt", "best.pt"):
+        as_format_1(tmp_path / "run" / name)
+    assert torch.load(tmp_path / "run" / "last.pt", weights_only=True)["format_version"] == 1
+    train(load_config(_config(tmp_path, small_data, "run"), ["training.max_epochs=3"]))
+    a, b = _log(tmp_path / "ref"), _log(tmp_path / "run")
+    assert [r["epoch"] for r in b] == ["1", "2", "3"]
+    for ra, rb in zip(a, b, strict=True):
+        for key in ("train_loss", "val_loss", "step"):
+            assert float(ra[key]) == pytest.approx(float(rb[key]), rel=1e-6), key
+    # another model config is still refused
+    with pytest.raises(ValueError, match="different 'model' config"):
+        train(load_config(_config(tmp_path, small_data, "run"),
+                          ["training.max_epochs=4", "model.short_range.n_rbf=4"]))
+
+
+@pytest.mark.slow
+def test_ddp_with_another_family_matches_one_process(tmp_path, small_data):
+    """Data-parallel training of the tests' radial family (``torchrun``, 2 processes) follows
+    the one-process run."""
+    common = {"training": {"dtype": "float64", "max_epochs": 2}}
+    one = _config(tmp_path, small_data, "one", **common)
+    two = _config(tmp_path, small_data, "two", **common)
+    cli = [sys.executable, "-m", "tests.train.families_cli", "train"]
+    subprocess.run([*cli, str(one), *RADIAL], check=True, env=_env(), capture_output=True)
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node",
+           "2", "-m", "tests.train.families_cli", "train", str(two), *RADIAL]
+    res = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    a, b = _log(tmp_path / "one"), _log(tmp_path / "two")
+    assert len(a) == len(b) == 2
+    for ra, rb in zip(a, b, strict=True):
+        for key in ("train_loss", "train_forces_mse", "val_loss", "val_forces_mae"):
+            assert float(ra[key]) == pytest.approx(float(rb[key]), rel=1e-7), key
+    assert read_checkpoint(tmp_path / "two" / "best.pt")["config"]["family"] == "radial"
+
+
 def test_ensemble_of_seeds_and_evaluation_table(tmp_path, small_data):
     from emlpack.train.evaluate import evaluate_models
 
@@ -188,7 +258,7 @@ def test_ensemble_of_seeds_and_evaluation_table(tmp_path, small_data):
     assert [p.parent.name for p in paths] == ["seed0", "seed1"]
     w0 = read_checkpoint(paths[0])["state_dict"]
     w1 = read_checkpoint(paths[1])["state_dict"]
-    assert not torch.equal(w0["schnet.embedding.weight"], w1["schnet.embedding.weight"])
+    assert not torch.equal(w0["short_range.embedding.weight"], w1["short_range.embedding.weight"])
     table, results = evaluate_models(paths, small_data, tmp_path / "eval", subset="val",
                                      max_structures=3, progress=False)
     assert "±" in table and "error rate" in table and "intrinsic variability" in table

@@ -132,8 +132,9 @@ def demo_config(out: Path, minutes: float) -> dict:
     return load_config(None, [
         f"data.path={out / 'data.h5'}", "data.reference=hydrides",
         "data.split=configuration", "data.fractions=[0.67, 0.08, 0.25]",
-        "model.n_features=48", "model.n_filters=32", "model.n_rbf=16",
-        "model.n_interactions=2", "model.message_norm=10.0",
+        "model.short_range.n_features=48", "model.short_range.n_filters=32",
+        "model.short_range.n_rbf=16", "model.short_range.n_interactions=2",
+        "model.short_range.message_norm=10.0",
         "augmentation.enabled=true", "augmentation.probability=0.25",
         "training.batch_size=8", "training.lr=3.0e-3",
         "training.decay_epochs=300", "training.max_epochs=100000",
@@ -291,6 +292,9 @@ def write_report(out: Path, times: dict, table: str, dipoles: list[dict],
                  pretrained: dict | None = None, ir: dict | None = None,
                  names: dict[str, tuple[str, str]] | None = None) -> Path:
     """``report.md``; ``names`` maps a structure's source to ``(key, formula)``."""
+    from emlpack.nn.potential import nest_flat_keys
+
+    sr = nest_flat_keys(cfg["model"])["short_range"]  # (a config of either spelling)
     lines = [
         "# emlpack demo report", "",
         *_pretrained_lines(pretrained or {"status": "not installed", "name": PRETRAINED,
@@ -299,8 +303,8 @@ def write_report(out: Path, times: dict, table: str, dipoles: list[dict],
         f"Data: {n_data} configurations of {', '.join(MOLECULES)} under random fields, plus"
         f" the hydrides {', '.join(HYDRIDE_NAMES)}, labelled with PySCF at the"
         f" '{DEMO_LEVEL}' preset (PBE0/6-31G*) with Foster-Boys centres -> `data.h5`.",
-        f"Model: SchNet F={cfg['model']['n_features']}, G={cfg['model']['n_filters']},"
-        f" N={cfg['model']['n_rbf']}, T={cfg['model']['n_interactions']}, trained"
+        f"Model: SchNet F={sr['n_features']}, G={sr['n_filters']},"
+        f" N={sr['n_rbf']}, T={sr['n_interactions']}, trained"
         f" {cfg['training']['max_time_minutes']} min (split by configuration"
         f" {cfg['data']['fractions']}, live hydride references) -> `run/best.pt`.", "",
         "| step | wall time [s] |", "|---|---|",

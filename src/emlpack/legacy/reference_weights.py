@@ -30,14 +30,17 @@ def config_from_reference_hparams(hparams: Mapping) -> ModelConfig:
     if h.get("shared_W_interactions", False):
         raise ValueError("reference models with shared_W_interactions=True are not supported")
     return ModelConfig(
-        n_features=int(h["num_features"]),
-        n_filters=int(h["num_filters"]),
-        n_rbf=int(h["n_max"]),
-        n_interactions=int(h["num_layers"]),
+        family="schnet",
+        short_range={
+            "n_features": int(h["num_features"]),
+            "n_filters": int(h["num_filters"]),
+            "n_rbf": int(h["n_max"]),
+            "n_interactions": int(h["num_layers"]),
+            "rbf_start": float(h.get("start", 0.0)),
+            "rbf_end": float(h["end"]),
+        },
         cutoff=float(h["cutoff"]),
         cutoff_transition=float(h["cutoff_transition_width"]),
-        rbf_start=float(h.get("start", 0.0)),
-        rbf_end=float(h["end"]),
     )
 
 
@@ -52,17 +55,18 @@ def reference_state_dict(variables: Mapping[str, np.ndarray], config: ModelConfi
         used.add(key)
         return torch.from_numpy(np.array(v[key], dtype=np.float32))
 
-    state = {"schnet.embedding.weight": take("model/init_features")}
-    for i in range(config.n_interactions):
+    state = {"short_range.embedding.weight": take("model/init_features")}
+    for i in range(config.short_range["n_interactions"]):
         for ours, (w, b) in _LAYERS.items():
-            prefix = f"schnet.interactions.{i}.{ours}"
+            prefix = f"short_range.interactions.{i}.{ours}"
             state[f"{prefix}.weight"] = take(_BLOCK.format(i=i) + w).T.contiguous()
             state[f"{prefix}.bias"] = take(_BLOCK.format(i=i) + b).reshape(-1)
     for k in range(3):
-        state[f"schnet.output.{k}.weight"] = take(
+        state[f"short_range.output.{k}.weight"] = take(
             f"model/output_layer/output_weights/{k}"
         ).T.contiguous()
-        state[f"schnet.output.{k}.bias"] = take(f"model/output_layer/output_biases/{k}").reshape(-1)
+        state[f"short_range.output.{k}.bias"] = take(
+            f"model/output_layer/output_biases/{k}").reshape(-1)
     extra = sorted(set(v) - used)
     if extra:
         raise KeyError(f"unexpected reference variables: {extra[:5]}")

@@ -1,4 +1,5 @@
-"""The eMLP energy model: neighbour lists, SchNet short range, electrostatics, potential."""
+"""The eMLP energy model: neighbour lists, short-range families (SchNet, ...),
+electrostatics, potential."""
 
 from emlpack.nn.graph import Graph, collate
 from emlpack.nn.potential import EMLP, ModelConfig

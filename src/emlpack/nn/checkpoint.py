@@ -4,6 +4,11 @@ The file is a plain dictionary saved with ``torch.save`` and read back with
 ``torch.load(..., weights_only=True)``, so loading never unpickles arbitrary objects.
 Writes go to a temporary file that is renamed into place (an interrupted save never leaves a
 corrupt checkpoint).
+
+Format 2 (the short-range families): ``config`` is :meth:`ModelConfig.to_dict` (``family``,
+``short_range`` parameters, cutoff, electrostatics) and the short-range weights are
+``short_range.*``. Format 1 files (SchNet only: a flat config and ``schnet.*`` weights) are
+read as format 2 by :func:`read_checkpoint`, unchanged on disk.
 """
 
 from __future__ import annotations
@@ -18,7 +23,9 @@ from emlpack.errors import EmlpackError
 from emlpack.nn.potential import EMLP, ModelConfig
 
 FORMAT = "emlpack-model"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: the short-range weights' prefix in format 1 (SchNet, before the families)
+_V1_PREFIX = "schnet."
 UNITS = {"energy": "eV", "length": "Å", "force": "eV/Å", "field": "V/Å", "stress": "eV/Å^3"}
 
 
@@ -48,7 +55,8 @@ def save_model(model: EMLP, path: str | Path, metadata: dict | None = None) -> P
 
 
 def read_checkpoint(path: str | Path) -> dict:
-    """The raw checkpoint dictionary, validated; raises :class:`CheckpointError`."""
+    """The checkpoint dictionary, validated, in the current format (older formats are
+    converted in memory); raises :class:`CheckpointError`."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
@@ -68,7 +76,21 @@ def read_checkpoint(path: str | Path) -> dict:
     for key in ("config", "state_dict"):
         if key not in payload:
             raise CheckpointError(f"{path}: checkpoint lacks {key!r}")
+    if payload.get("format_version", 0) < 2:
+        payload = _from_format_1(payload, path)
     return payload
+
+
+def _from_format_1(payload: dict, path: Path) -> dict:
+    """A format-1 payload as format 2: the flat config nested (family ``schnet``), the
+    ``schnet.*`` weights renamed ``short_range.*``."""
+    try:
+        config = ModelConfig.from_dict(payload["config"]).to_dict()
+    except (ValueError, TypeError) as exc:
+        raise CheckpointError(f"{path}: inconsistent checkpoint: {exc}") from None
+    state = {("short_range." + k[len(_V1_PREFIX):] if k.startswith(_V1_PREFIX) else k): v
+             for k, v in payload["state_dict"].items()}
+    return {**payload, "format_version": 2, "config": config, "state_dict": state}
 
 
 def load_model(path: str | Path, dtype: torch.dtype | None = torch.float64) -> EMLP:

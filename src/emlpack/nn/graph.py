@@ -34,7 +34,7 @@ class Graph:
     cell: torch.Tensor  # (B, 3, 3) rows are lattice vectors (zeros for molecules)
     pbc: torch.Tensor  # (B,) bool
     field: torch.Tensor  # (B, 3) V/Å
-    edge_i: torch.Tensor  # (E,) half neighbour list within the SchNet cutoff
+    edge_i: torch.Tensor  # (E,) half neighbour list within the short-range cutoff
     edge_j: torch.Tensor  # (E,)
     edge_shift: torch.Tensor  # (E, 3) integer image shifts (as floats)
     coulomb_i: torch.Tensor  # (P,) all pairs i<j of molecular (non-periodic) structures
@@ -78,6 +78,36 @@ class Graph:
         out = {f.name: getattr(self, f.name) for f in fields(self)}
         out["positions"] = positions
         return Graph(**out)
+
+    def subgraph(self, keep: torch.Tensor) -> Graph:
+        """The structures ``keep`` (B,) bool of this batch with the same (frozen) topology:
+        their particles, edges, Coulomb pairs and k vectors, renumbered."""
+        g = self
+        old_to_new_s = torch.cumsum(keep.long(), 0) - 1
+        part = keep[g.batch]
+        old_to_new = torch.cumsum(part.long(), 0) - 1
+        e_keep = part[g.edge_i]
+        c_keep = part[g.coulomb_i]
+        k_keep = keep[g.kvec_batch]
+        return Graph(
+            numbers=g.numbers[part],
+            positions=g.positions[part],
+            charges=g.charges[part],
+            is_pair=g.is_pair[part],
+            batch=old_to_new_s[g.batch[part]],
+            cell=g.cell[keep],
+            pbc=g.pbc[keep],
+            field=g.field[keep],
+            edge_i=old_to_new[g.edge_i[e_keep]],
+            edge_j=old_to_new[g.edge_j[e_keep]],
+            edge_shift=g.edge_shift[e_keep],
+            coulomb_i=old_to_new[g.coulomb_i[c_keep]],
+            coulomb_j=old_to_new[g.coulomb_j[c_keep]],
+            kvec_n=g.kvec_n[k_keep],
+            kvec_batch=old_to_new_s[g.kvec_batch[k_keep]],
+            n_cores=g.n_cores[keep],
+            n_pairs=g.n_pairs[keep],
+        )
 
     def split(self, values: torch.Tensor) -> list[torch.Tensor]:
         """Split a per-particle tensor into one tensor per structure."""

@@ -1,6 +1,8 @@
-"""The eMLP energy model: SchNet short range + Gaussian-charge electrostatics + field term.
+"""The eMLP energy model: short range + Gaussian-charge electrostatics + field term.
 
-``E = E_short_range + E_long_range + E_field`` (eV). Forces are ``-dE/dr`` for every particle
+``E = E_short_range + E_long_range + E_field`` (eV). The short range is a family of
+:mod:`emlpack.nn.short_range` (SchNet by default, the paper's), built by name from the config.
+Forces are ``-dE/dr`` for every particle
 (cores and electron pairs). The stress is ``(1/V) dE/d(eps)`` for the homogeneous deformation
 ``r -> r (I + eps)``, ``cell -> cell (I + eps)`` (row vectors, ASE sign, eV/Å^3), taken with
 the neighbour list and the k set fixed.
@@ -16,7 +18,7 @@ derivative is returned as ``virial_including_field`` for the extended Hessian's 
 from __future__ import annotations
 
 import copy
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -25,24 +27,35 @@ from torch import nn
 from emlpack.nn.electrostatics import coulomb_molecular, ewald_reciprocal, field_energy
 from emlpack.nn.graph import Graph, collate
 from emlpack.nn.scatter import segment_sum
-from emlpack.nn.schnet import HeldFilters, SchNet
-from emlpack.structure import PAIR_NUMBER, Structure
+from emlpack.nn.short_range import (
+    HeldEdges,
+    HoldsEdges,
+    build_short_range,
+    family_defaults,
+    resolve_params,
+)
+from emlpack.nn.short_range.common import edge_lengths
+from emlpack.structure import Structure
 from emlpack.units import ANGSTROM_IN_BOHR, REFERENCE_GAMMA, REFERENCE_GCUT_PER_BOHR
+
+#: the family that a model config without one means (every config before the families)
+DEFAULT_FAMILY = "schnet"
 
 
 @dataclass
 class ModelConfig:
-    """Hyperparameters of the eMLP (lengths in Å). Defaults are the paper's."""
+    """Hyperparameters of the eMLP (lengths in Å). Defaults are the paper's.
 
-    n_features: int = 512
-    n_filters: int = 128
-    n_rbf: int = 32
-    n_interactions: int = 4
+    ``family`` names the short-range family (:func:`emlpack.nn.short_range.families`) and
+    ``short_range`` holds its own parameters (its defaults filled in on construction;
+    :func:`emlpack.nn.short_range.family_defaults`); ``cutoff`` and ``cutoff_transition``
+    are shared by the graph (neighbour list) and the family (cosine switch); the rest is
+    the electrostatics."""
+
+    family: str = DEFAULT_FAMILY
+    short_range: dict = field(default_factory=dict)
     cutoff: float = 4.0
     cutoff_transition: float = 0.5
-    rbf_start: float = 0.0
-    rbf_end: float = 4.0
-    message_norm: float = 70.0
     #: Gaussian charge parameter gamma = 1/(2 sigma) (1/Å); also the Ewald alpha
     gamma: float = REFERENCE_GAMMA
     #: Ewald reciprocal cutoff |k|/(2 pi) <= gcut (1/Å); reference: 0.25/bohr
@@ -52,43 +65,74 @@ class ModelConfig:
     #: elements the model was trained for (cores); electron pairs are number 99
     elements: tuple[int, ...] = (1, 6, 7, 8)
 
+    def __post_init__(self) -> None:
+        if not isinstance(self.short_range, dict):
+            raise ValueError(f"model config short_range must be a mapping, got"
+                             f" {self.short_range!r}")
+        self.short_range = resolve_params(self.family, self.short_range)
+        self.elements = tuple(int(z) for z in self.elements)
+
     def to_dict(self) -> dict:
-        """The hyperparameters as a plain dict (``elements`` as a list)."""
-        d = asdict(self)
-        d["elements"] = list(self.elements)
-        return d
+        """The hyperparameters as a plain dict (``elements`` as a list, ``short_range`` a
+        copy with every parameter of the family)."""
+        return {
+            "family": self.family,
+            "short_range": copy.deepcopy(self.short_range),
+            "cutoff": self.cutoff,
+            "cutoff_transition": self.cutoff_transition,
+            "gamma": self.gamma,
+            "gcut": self.gcut,
+            "coulomb_eps": self.coulomb_eps,
+            "elements": list(self.elements),
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> ModelConfig:
-        """The config of a :meth:`to_dict` dict; unknown keys raise ``ValueError``."""
-        d = dict(d)
-        if "elements" in d:
-            d["elements"] = tuple(int(z) for z in d["elements"])
-        unknown = set(d) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise ValueError(f"unknown model config keys: {sorted(unknown)}")
-        return cls(**d)
+        """The config of a :meth:`to_dict` dict, or of a version-1 flat one (SchNet's
+        parameters beside the others, no ``family``: :func:`nest_flat_keys`); unknown keys
+        raise ``ValueError``."""
+        return cls(**nest_flat_keys(d))
+
+
+def nest_flat_keys(section: dict) -> dict:
+    """A (partial) model config with the version-1 spelling moved into the current one: keys
+    that are not :class:`ModelConfig` fields are SchNet parameters written beside the others
+    (every config and checkpoint before the families) and go under ``short_range`` with
+    ``family: schnet``. Such keys with another family, keys SchNet does not take, and a
+    parameter given both ways raise ``ValueError``."""
+    fields = set(ModelConfig.__dataclass_fields__)
+    flat = {k: v for k, v in section.items() if k not in fields}
+    out = {k: v for k, v in section.items() if k in fields}
+    if not flat:
+        return out
+    unknown = sorted(set(flat) - set(family_defaults(DEFAULT_FAMILY)))
+    if unknown:
+        raise ValueError(f"unknown model config keys: {unknown}")
+    family = out.get("family", DEFAULT_FAMILY)
+    if family != DEFAULT_FAMILY:
+        raise ValueError(f"model config keys {sorted(flat)} beside the others are SchNet's"
+                         f" parameters (version-1 spelling); family {family!r} takes its"
+                         " parameters under 'short_range'")
+    nested = dict(out.get("short_range") or {})
+    twice = sorted(set(nested) & set(flat))
+    if twice:
+        raise ValueError(f"model config keys {twice} given both beside the others and under"
+                         " 'short_range'")
+    out["family"] = DEFAULT_FAMILY
+    out["short_range"] = {**nested, **flat}
+    return out
 
 
 class EMLP(nn.Module):
-    """Electron machine learning potential acting on batched :class:`Graph` inputs."""
+    """Electron machine learning potential acting on batched :class:`Graph` inputs; its
+    short-range family is ``self.short_range`` (:mod:`emlpack.nn.short_range`)."""
 
     def __init__(self, config: ModelConfig | None = None) -> None:
         super().__init__()
         self.config = config or ModelConfig()
         c = self.config
-        self.schnet = SchNet(
-            n_features=c.n_features,
-            n_filters=c.n_filters,
-            n_rbf=c.n_rbf,
-            n_interactions=c.n_interactions,
-            cutoff=c.cutoff,
-            cutoff_transition=c.cutoff_transition,
-            rbf_start=c.rbf_start,
-            rbf_end=c.rbf_end,
-            message_norm=c.message_norm,
-            n_embeddings=PAIR_NUMBER + 1,
-        )
+        self.short_range = build_short_range(c.family, c.short_range, cutoff=c.cutoff,
+                                             cutoff_transition=c.cutoff_transition)
 
     # ------------------------------------------------------------------ input
     def graph(
@@ -111,18 +155,35 @@ class EMLP(nn.Module):
         )
 
     # ------------------------------------------------------------------ energy
+    def atomic_energies(
+        self,
+        g: Graph,
+        positions: torch.Tensor,
+        cell: torch.Tensor,
+        held: HeldEdges | None = None,
+    ) -> torch.Tensor:
+        """Short-range energies (N,) (eV) of every particle at ``positions`` (N, 3) (Å) and
+        ``cell`` (B, 3, 3) (Å) on ``g``'s edges; with ``held`` (:meth:`hold_edges`) only the
+        free edges are evaluated."""
+        if held is None:
+            vectors = self.edge_vectors(g, positions, cell)
+            return self.short_range(g.numbers, vectors, g.edge_i, g.edge_j)
+        free = held.free
+        vectors = self.edge_vectors(g, positions, cell, free)
+        return self.short_range(g.numbers, vectors, g.edge_i[free], g.edge_j[free], held=held)
+
     def energy_parts(
         self,
         g: Graph,
         positions: torch.Tensor | None = None,
         cell: torch.Tensor | None = None,
         field: torch.Tensor | None = None,
-        held: HeldFilters | None = None,
+        held: HeldEdges | None = None,
         long_range: bool = True,
     ) -> dict[str, torch.Tensor]:
         """Energy parts (eV) per structure; ``positions``/``cell``/``field`` override ``g``'s.
-        With ``held`` (:meth:`hold_filters`) the held edges' filters are not recomputed: their
-        lengths must be those of ``g`` (frozen parameters only). ``long_range=False``: the
+        With ``held`` (:meth:`hold_edges`) the held edges are not evaluated again: their
+        vectors must be those of ``g`` (frozen parameters only). ``long_range=False``: the
         electrostatic energy is left out (zero; for callers that add it from its analytic
         derivatives, e.g. the pair relaxation).
 
@@ -132,17 +193,12 @@ class EMLP(nn.Module):
         pos = g.positions if positions is None else positions
         cell = g.cell if cell is None else cell
         field = g.field if field is None else field
-        if held is None:
-            atomic = self.schnet(g.numbers, self.edge_lengths(g, pos, cell), g.edge_i, g.edge_j)
-        else:
-            free = held.free
-            r = self.edge_lengths(g, pos, cell, free)
-            atomic = self.schnet(g.numbers, r, g.edge_i[free], g.edge_j[free], held)
+        atomic = self.atomic_energies(g, pos, cell, held)
         b = g.n_structures
         e_sr = segment_sum(atomic, g.batch, b)
         c = self.config
         # Electrostatics always in float64: its pair and self terms cancel to ~1e-2 of their
-        # size, which costs float32 models 1e-4 eV; it is cheap next to SchNet.
+        # size, which costs float32 models 1e-4 eV; it is cheap next to the short range.
         p64, q64, c64 = pos.double(), g.charges.double(), cell.double()
         if long_range:
             e_lr = coulomb_molecular(
@@ -165,8 +221,8 @@ class EMLP(nn.Module):
     def edge_vectors(
         g: Graph, positions: torch.Tensor, cell: torch.Tensor, edges: torch.Tensor | None = None
     ) -> torch.Tensor:
-        """Vectors ``r_j - r_i`` (+ image shift) of the half-list SchNet edges (Å), (E, 3);
-        with ``edges`` (indices) of those edges only."""
+        """Vectors ``r_j - r_i`` (+ image shift) of the half-list short-range edges (Å),
+        (E, 3); with ``edges`` (indices) of those edges only."""
         i, j, shift = g.edge_i, g.edge_j, g.edge_shift
         if edges is not None:
             i, j, shift = i[edges], j[edges], shift[edges]
@@ -183,23 +239,22 @@ class EMLP(nn.Module):
         cell: torch.Tensor,
         edges: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """Lengths (Å) of the half-list SchNet edges, ``sqrt(|d|^2 + 1e-20)``, (E,) (with
+        """Lengths (Å) of the half-list short-range edges, ``sqrt(|d|^2 + 1e-20)``, (E,) (with
         ``edges``: of those only)."""
-        d = cls.edge_vectors(g, positions, cell, edges)
-        return torch.sqrt((d * d).sum(-1) + 1e-20)
+        return edge_lengths(cls.edge_vectors(g, positions, cell, edges))
 
-    def hold_filters(self, g: Graph, hold: torch.Tensor) -> HeldFilters:
-        """Filters of the edges ``hold`` (E,) bool of ``g`` at ``g``'s geometry, computed once
-        for :meth:`energy_parts` (e.g. the core-core edges while only the pairs move; frozen
-        parameters)."""
+    def hold_edges(self, g: Graph, hold: torch.Tensor) -> HeldEdges:
+        """What the short-range family precomputes for the edges ``hold`` (E,) bool of ``g``
+        at ``g``'s geometry, for :meth:`energy_parts` (e.g. the core-core edges while only the
+        pairs move; frozen parameters; capability
+        :class:`~emlpack.nn.short_range.protocol.HoldsEdges`, ``TypeError`` without it)."""
+        if not isinstance(self.short_range, HoldsEdges):
+            raise TypeError(f"short-range family {self.config.family!r} cannot hold edges")
         idx = torch.nonzero(hold).squeeze(1)
         with torch.no_grad():
-            r = self.edge_lengths(g, g.positions.detach(), g.cell.detach(), idx)
-            filters = self.schnet.frozen_filters(r)
-        return HeldFilters(
-            i=g.edge_i[idx], j=g.edge_j[idx], filters=filters,
-            free=torch.nonzero(~hold).squeeze(1),
-        )
+            vectors = self.edge_vectors(g, g.positions.detach(), g.cell.detach(), idx)
+        return self.short_range.hold(vectors, g.edge_i[idx], g.edge_j[idx],
+                                     torch.nonzero(~hold).squeeze(1))
 
     def energy(
         self,
@@ -207,7 +262,7 @@ class EMLP(nn.Module):
         positions: torch.Tensor | None = None,
         cell: torch.Tensor | None = None,
         field: torch.Tensor | None = None,
-        held: HeldFilters | None = None,
+        held: HeldEdges | None = None,
     ) -> torch.Tensor:
         """Total energy (eV) per structure (``held``: see :meth:`energy_parts`)."""
         if held is None:  # subclasses with their own energy_parts take no ``held``

@@ -33,22 +33,26 @@ Default method (``initial_hessian="coulomb"``): a quasi-Newton on the per-struct
    pairs turning one at a time, stiff, while together they turn almost freely; its secant
    gives ``M`` that curvature.
 
-Every evaluation holds the SchNet filters of the core-core edges fixed (their lengths do not
-change at fixed cores and cell; :meth:`emlpack.nn.potential.EMLP.hold_filters`). A plain
-:class:`EMLP` is evaluated without its electrostatics, whose energy and gradient come from the
-analytic pair terms computed for ``H_el`` anyway. Float32 phase (``float32_above``, batches of
+Every evaluation holds the core-core edges fixed when the short-range family can (their
+vectors do not change at fixed cores and cell; capability
+:class:`~emlpack.nn.short_range.protocol.HoldsEdges`, SchNet's filters;
+:meth:`emlpack.nn.potential.EMLP.hold_edges`). A model with EMLP's own energy
+(:func:`~emlpack.properties.hessian.standard_energy`) is evaluated without its
+electrostatics, whose energy and gradient come from the analytic pair terms computed for
+``H_el`` anyway. Float32 phase (``float32_above``, batches of
 at least ``float32_min_pairs`` pairs): while a structure's largest pair force is above it, its
 evaluations are float32 (Armijo test with a 1e-6 |E| allowance, steps below that resolution
 accepted on a lower pair-gradient norm), then float64, so the minima are float64 minima.
 
-``initial_hessian="exact"``: Newton with exact pair Hessians (closed-form SchNet blocks plus the
-analytic electrostatics, :meth:`_PairProblem.hessians`),
+``initial_hessian="exact"``: Newton with exact pair Hessians (short-range blocks,
+:func:`~emlpack.nn.short_range.hessian.short_range_position_hessian`, plus the analytic
+electrostatics, :meth:`_PairProblem.hessians`),
 refreshed when the line search backtracks or every ``hessian_every`` steps, damped BFGS updates
 in between. ``"bfgs"``: damped BFGS from a scaled identity.
 
 Convergence: the largest pair-force norm (projected on the box) below ``fmax`` (eV/Å); a
 structure whose pairs collapse onto one point (``collapse_distance``) stops. The graph (the
-SchNet neighbour list) is built at the start pairs; a structure whose neighbour list at the
+short-range neighbour list) is built at the start pairs; a structure whose neighbour list at the
 result holds an edge the start lacked is relaxed again from its result on a graph built there.
 Diagnostics per structure: converged flag, iterations, energy+gradient evaluations, Hessian
 evaluations, final max force, smallest eigenvalue of the exact pair Hessian at the result
@@ -79,16 +83,17 @@ from emlpack.nn.electrostatics import (
     ewald_reciprocal_derivatives,
 )
 from emlpack.nn.graph import Graph
-from emlpack.nn.potential import EMLP
+from emlpack.nn.potential import EMLP, for_evaluation
 from emlpack.nn.scatter import segment_sum
-from emlpack.nn.schnet import HeldFilters
+from emlpack.nn.short_range import FrozenAnyDtype, HeldEdges, HoldsEdges, TabulatesEdges
+from emlpack.nn.short_range.hessian import short_range_position_hessian
 from emlpack.pairs.checks import (
     COLLAPSE_DISTANCE,
     MAX_CORE_DISTANCE,
     MIN_PAIR_DISTANCE,
     check_pairs,
 )
-from emlpack.properties.hessian import short_range_position_hessian, standard_energy
+from emlpack.properties.hessian import standard_energy
 from emlpack.structure import Structure
 
 if TYPE_CHECKING:
@@ -172,11 +177,13 @@ class RelaxOptions:
     #: Hessian-vector products (0: the full exact pair Hessian instead)
     curvature_steps: int = 20
     #: energies and gradients with the SchNet filters of the pair edges from a cubic Hermite
-    #: table of this spacing (Å; :class:`emlpack.nn.schnet.FilterTable`) instead of the filter
-    #: network (Hessian-vector products and exact Hessians keep the network). Measured on
-    #: the trained benchmark model, 64 structures: energies within 3e-11 eV, pair gradients
-    #: within 2.5e-8 eV/Å, an energy+gradient 1.5x cheaper in float64 and float32, the
-    #: relaxation benchmark 1.27x; batches of at least ``TABLE_MIN_EDGES`` pair edges; 0: off)
+    #: table of this spacing (Å; :class:`emlpack.nn.short_range.schnet.FilterTable`; families
+    #: with the capability :class:`~emlpack.nn.short_range.protocol.TabulatesEdges`) instead
+    #: of the filter network (Hessian-vector products and exact Hessians keep the network).
+    #: Measured on the trained benchmark model, 64 structures: energies within 3e-11 eV, pair
+    #: gradients within 2.5e-8 eV/Å, an energy+gradient 1.5x cheaper in float64 and float32,
+    #: the relaxation benchmark 1.27x; batches of at least ``TABLE_MIN_EDGES`` pair edges;
+    #: 0: off)
     filter_table: float = 1e-3
     #: failure thresholds of :func:`emlpack.pairs.checks.check_pairs` (Å)
     min_pair_distance: float = MIN_PAIR_DISTANCE
@@ -234,8 +241,8 @@ TABLE_MIN_EDGES = 2000
 class _PairProblem:
     """Energy, gradient and pair-block Hessians as functions of all pair coordinates."""
 
-    def __init__(self, model: EMLP, g: Graph, hold_filters: bool = True,
-                 held: HeldFilters | None = None, filter_table: float = 0.0,
+    def __init__(self, model: EMLP, g: Graph, hold_edges: bool = True,
+                 held: HeldEdges | None = None, filter_table: float = 0.0,
                  tabulate: bool | None = None) -> None:
         self.model = model
         self.g = g
@@ -244,29 +251,30 @@ class _PairProblem:
         starts = torch.cumsum(g.n_pairs, 0) - g.n_pairs
         self.local = torch.arange(len(self.pair_idx)) - starts[self.pair_batch]
         self.n_max = int(g.n_pairs.max()) if len(g.n_pairs) else 0
-        # the core-core edges keep their lengths: their SchNet filters are computed once
-        # (frozen parameters; models with their own energy_parts evaluate everything)
+        # the core-core edges keep their vectors: held once when the family can (frozen
+        # parameters; models with their own energy_parts evaluate everything)
         self.held = held
         if (
             held is None
-            and hold_filters
-            and type(model).energy_parts is EMLP.energy_parts
+            and hold_edges
+            and standard_energy(model)
+            and isinstance(model.short_range, HoldsEdges)
             and not any(p.requires_grad for p in model.parameters())
         ):
             core_core = ~(g.is_pair[g.edge_i] | g.is_pair[g.edge_j])
             if bool(core_core.any()):
-                self.held = model.hold_filters(g, core_core)
+                self.held = model.hold_edges(g, core_core)
         # energies and gradients with the free edges' filters from a table (spacing
         # ``filter_table`` Å, 0: off) when ``tabulate`` (None: in batches of at least
         # TABLE_MIN_EDGES pair edges); Hessian-vector products keep the filter network
         self.filter_table = filter_table
         if tabulate is None:
             tabulate = self.held is not None and len(self.held.free) >= TABLE_MIN_EDGES
-        self.tabulated = bool(tabulate and filter_table > 0 and self.held is not None)
+        self.tabulated = bool(tabulate and filter_table > 0 and self.held is not None
+                              and isinstance(model.short_range, TabulatesEdges))
         self.held_tabulated = self.held
         if self.tabulated:
-            self.held_tabulated = replace(self.held,
-                                          table=model.schnet.filter_table(filter_table))
+            self.held_tabulated = model.short_range.tabulate(self.held, filter_table)
 
     def energy(self, x: torch.Tensor, long_range: bool = True,
                tabulated: bool = False) -> torch.Tensor:
@@ -312,9 +320,10 @@ class _PairProblem:
         """Padded pair-block Hessians (B, 3 Pmax, 3 Pmax); padding is the identity.
 
         ``"fast"`` (models with EMLP's own energy; others get ``"reverse"``): per structure
-        the SchNet block in closed form
-        (:func:`emlpack.properties.hessian.short_range_position_hessian`, the pairs'
-        directions only) plus the analytic electrostatic blocks (:class:`_CoulombPairs`);
+        the short-range block
+        (:func:`emlpack.nn.short_range.hessian.short_range_position_hessian`, the pairs'
+        directions only: SchNet's in closed form, other families reverse over reverse on the
+        short range alone) plus the analytic electrostatic blocks (:class:`_CoulombPairs`);
         C4H7NO2 with 20 pairs (mini-eqm7 member 0): 54-59 ms CPU instead of 0.76-0.90 s.
         ``"reverse"``: column k of every structure's block at once, the product with the
         probe that is 1 on coordinate k of every structure's pairs, one reverse pass each
@@ -343,7 +352,7 @@ class _PairProblem:
         return (0.5 * (h + h.transpose(1, 2))).detach()
 
     def _fast_hessians(self, x: torch.Tensor) -> torch.Tensor:
-        """``hessians(x, "fast")``: SchNet pair blocks structure by structure (on the
+        """``hessians(x, "fast")``: short-range pair blocks structure by structure (on the
         problem's frozen neighbour list), the electrostatic ones for the whole batch."""
         g, m = self.g, 3 * self.n_max
         _, h, _ = _CoulombPairs(self.model, self)(x)
@@ -352,7 +361,7 @@ class _PairProblem:
         for k in torch.nonzero(g.n_pairs > 0).squeeze(1).tolist():
             keep = torch.zeros(g.n_structures, dtype=torch.bool, device=x.device)
             keep[k] = True
-            sub = _subgraph(at_x, keep)
+            sub = at_x.subgraph(keep)
             pairs = torch.nonzero(sub.is_pair).squeeze(1)
             n = 3 * len(pairs)
             h[k, :n, :n] += short_range_position_hessian(self.model, sub, pairs).to(x.dtype)
@@ -476,38 +485,9 @@ class _CoulombPairs:
         return grad.to(x.dtype), hess, e
 
 
-def _subgraph(g: Graph, keep: torch.Tensor) -> Graph:
-    """The structures ``keep`` (B,) bool of ``g`` with the same (frozen) topology."""
-    old_to_new_s = torch.cumsum(keep.long(), 0) - 1
-    part = keep[g.batch]
-    old_to_new = torch.cumsum(part.long(), 0) - 1
-    e_keep = part[g.edge_i]
-    c_keep = part[g.coulomb_i]
-    k_keep = keep[g.kvec_batch]
-    return Graph(
-        numbers=g.numbers[part],
-        positions=g.positions[part],
-        charges=g.charges[part],
-        is_pair=g.is_pair[part],
-        batch=old_to_new_s[g.batch[part]],
-        cell=g.cell[keep],
-        pbc=g.pbc[keep],
-        field=g.field[keep],
-        edge_i=old_to_new[g.edge_i[e_keep]],
-        edge_j=old_to_new[g.edge_j[e_keep]],
-        edge_shift=g.edge_shift[e_keep],
-        coulomb_i=old_to_new[g.coulomb_i[c_keep]],
-        coulomb_j=old_to_new[g.coulomb_j[c_keep]],
-        kvec_n=g.kvec_n[k_keep],
-        kvec_batch=old_to_new_s[g.kvec_batch[k_keep]],
-        n_cores=g.n_cores[keep],
-        n_pairs=g.n_pairs[keep],
-    )
-
-
-def _held_subset(prob: _PairProblem, keep: torch.Tensor) -> HeldFilters | None:
+def _held_subset(prob: _PairProblem, keep: torch.Tensor) -> HeldEdges | None:
     """``prob``'s held filters restricted to the structures ``keep`` (B,) bool, numbered as in
-    ``_subgraph(prob.g, keep)`` (no filter is recomputed; measured: rebuilding them took
+    ``prob.g.subgraph(keep)`` (no filter is recomputed; measured: rebuilding them took
     ~4 ms per compaction on the benchmark batch, ~20 compactions with the float32 start)."""
     held, g = prob.held, prob.g
     if held is None:
@@ -519,11 +499,7 @@ def _held_subset(prob: _PairProblem, keep: torch.Tensor) -> HeldFilters | None:
         return None
     is_free = torch.zeros(len(g.edge_i), dtype=torch.bool)
     is_free[held.free] = True
-    return HeldFilters(
-        i=old_to_new[held.i[rows]], j=old_to_new[held.j[rows]],
-        filters=[f[rows] for f in held.filters],
-        free=torch.nonzero(is_free[part[g.edge_i]]).squeeze(1),
-    )
+    return held.subset(rows, old_to_new, torch.nonzero(is_free[part[g.edge_i]]).squeeze(1))
 
 
 class _ActiveEvaluator:
@@ -543,7 +519,7 @@ class _ActiveEvaluator:
             (active & ~self.members).any()
         ):
             self.members = active.clone()
-            self.sub = _PairProblem(self.model, _subgraph(self.full.g, active),
+            self.sub = _PairProblem(self.model, self.full.g.subgraph(active),
                                     held=_held_subset(self.full, active),
                                     filter_table=self.full.filter_table,
                                     tabulate=self.full.tabulated)
@@ -614,14 +590,14 @@ def relax_pairs(
             f"initial_hessian must be 'coulomb', 'exact' or 'bfgs', not {opts.initial_hessian!r}"
         )
     structures = list(structures)
-    # frozen parameters: no parameter gradients are needed, and the SchNet then uses its
-    # cheaper frozen-weight evaluation (see emlpack.nn.schnet)
+    # frozen parameters: no parameter gradients are needed, and a family may then use a
+    # cheaper frozen-weight evaluation (SchNet's: emlpack.nn.short_range.schnet)
     grad_flags = [(p, p.requires_grad) for p in model.parameters()]
     for p, _ in grad_flags:
         p.requires_grad_(False)
     try:
         results = _relax_once(model, structures, opts, bounds)
-        # the graph (SchNet neighbour list) is built at the start pairs and kept: a structure
+        # the graph (short-range neighbour list) is built at the start pairs and kept: a structure
         # whose result has an edge within the cutoff that the start lacked is relaxed again
         # from its result with a graph built there (until the neighbour list holds)
         starts = list(structures)
@@ -633,7 +609,7 @@ def relax_pairs(
             if rebuild == _MAX_GRAPH_REBUILDS:  # still moving into the cutoff: not trusted
                 for k in stale:
                     results[k].converged = False
-                    results[k].reason = (f"the pairs still moved into the SchNet cutoff after"
+                    results[k].reason = (f"the pairs still moved into the cutoff after"
                                          f" {rebuild} rebuilds of the neighbour list")
                 break
             for k in stale:
@@ -654,7 +630,7 @@ _MAX_GRAPH_REBUILDS = 3
 
 
 def _missing_edges(model: EMLP, start: Structure, pairs: np.ndarray) -> bool:
-    """Whether particles within the SchNet cutoff with the pairs at ``pairs`` [P, 3] (Å) were
+    """Whether particles within the short-range cutoff with the pairs at ``pairs`` [P, 3] (Å) were
     farther apart in ``start``, whose neighbour list the relaxation used (only edges of a pair
     can change at fixed cores; edges that left the cutoff contribute exactly zero)."""
     if start.n_pairs == 0 or np.array_equal(pairs, start.pairs):
@@ -1039,22 +1015,23 @@ def _relax_coulomb(model: EMLP, structures: Sequence[Structure], opts: RelaxOpti
     # float32 phase: structures with a pair force above opts.float32_above (measured on the
     # trained benchmark model: float32 energy+gradient 2.5x cheaper, gradient error 2e-5 eV/Å,
     # energy error 8e-6 eV at |E| = 12 eV)
-    # (plain EMLP energies only: subclasses with their own energy_parts stay in float64)
+    # (EMLP's own energy only: subclasses with their own energy_parts stay in float64)
     low = bool(opts.float32_above > 0 and g.n_pairs.max() > 0
                and int(g.n_pairs.sum()) >= opts.float32_min_pairs
-               and type(model).energy_parts is EMLP.energy_parts)
+               and standard_energy(model))
     prob32 = prob
     if low:
-        # the held core-core filters rounded from float64 (not recomputed in float32)
-        held32 = None if prob.held is None else replace(
-            prob.held, filters=[f.float() for f in prob.held.filters])
-        prob32 = _PairProblem(model, g.to(dtype=torch.float32), held=held32,
+        # the held core-core edges rounded from float64 (not recomputed in float32); a family
+        # that cannot evaluate float32 inputs on its float64 weights gets a float32 copy
+        held32 = None if prob.held is None else prob.held.to(torch.float32)
+        model32 = (model if isinstance(model.short_range, FrozenAnyDtype)
+                   else for_evaluation(model, torch.float32))
+        prob32 = _PairProblem(model32, g.to(dtype=torch.float32), held=held32,
                               filter_table=prob.filter_table, tabulate=prob.tabulated)
     work = prob32 if low else prob
-    # plain EMLP: the model evaluations leave out the electrostatics, whose energy and gradient
-    # come from the analytic derivatives computed at every iterate anyway (float64)
-    analytic = (type(model).energy_parts is EMLP.energy_parts
-                and type(model).energy is EMLP.energy)
+    # EMLP's own energy: the model evaluations leave out the electrostatics, whose energy and
+    # gradient come from the analytic derivatives computed at every iterate anyway (float64)
+    analytic = standard_energy(model)
     lr = not analytic  # whether the model evaluations include the electrostatics
     energy, grad = (t.to(dtype) for t in work.energy_gradient(x.to(work.g.dtype), lr))
     use32 = torch.full((b,), bool(low))
@@ -1078,7 +1055,7 @@ def _relax_coulomb(model: EMLP, structures: Sequence[Structure], opts: RelaxOpti
         short = _lumped_short_range(work, coulomb, x, g_short, 3e-4 if low else 1e-4, lr)
         n_eval += 3 * (~converged).long()
     evaluate = _ActiveEvaluator(model, prob)
-    evaluate32 = _ActiveEvaluator(model, prob32)
+    evaluate32 = _ActiveEvaluator(prob32.model, prob32)
     curvilinear = _BondRotations(structures, x) if opts.bond_rotations else None
     # structures with a group of pairs about one bond take one step along its collective
     # rotation (``rotation_probe``) instead of a Newton step, once; then ``probed``
@@ -1374,7 +1351,7 @@ def _min_curvature(prob: _PairProblem, x: torch.Tensor, grad: torch.Tensor,
         # products only for the structures whose Ritz pair has not converged yet (Davidson
         # zeroes the others' directions)
         pp = product_prob or prob
-        evaluate = _ActiveEvaluator(prob.model, pp)
+        evaluate = _ActiveEvaluator(pp.model, pp)
         xp = x.to(pp.g.dtype)
 
         def product(q: torch.Tensor) -> torch.Tensor:
@@ -1558,7 +1535,7 @@ def _results(structures: Sequence[Structure], prob: _PairProblem, x: torch.Tenso
 def pair_hessian(model: EMLP, structure: Structure, method: str = "fast") -> np.ndarray:
     """Exact pair-block Hessian (eV/Å^2), shape (3P, 3P), of one structure at its pairs
     (cores fixed); rows/columns ordered pair by pair, x y z (:meth:`_PairProblem.hessians`:
-    ``"fast"``, the closed-form SchNet block for EMLP's own energy, else, or with
+    ``"fast"``, the short-range block of the family for EMLP's own energy, else, or with
     ``"reverse"``, 3P reverse passes)."""
     g = model.graph(structure, dtype=torch.float64)
     prob = _PairProblem(model, g)

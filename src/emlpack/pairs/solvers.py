@@ -522,18 +522,40 @@ def energy_gradient_function(
 
 def exact_blocks(model: EMLP, structure: Structure) -> tuple[np.ndarray, np.ndarray]:
     """Pair-pair (3P, 3P) and core-pair (3N, 3P) blocks (eV/Å^2) of the position Hessian of a
-    molecule at its pairs: the closed-form extended Hessian
-    (:func:`emlpack.properties.hessian.extended_hessian`) for EMLP's own energy, else forward
-    differences (:func:`difference_blocks`). Measured with member 0 of ``mini-eqm7``, 1 thread:
-    hexane (19 pairs) 0.17-0.23 s instead of 0.78-0.83 s for the differences, C4H7NO2 (20
-    pairs) 0.14-0.17 s instead of 0.96-1.04 s; the differences' errors 4e-6-3e-5 relative."""
-    if not standard_energy(model):
-        evaluate, _ = energy_gradient_function(model, structure)
-        return difference_blocks(evaluate, structure.pairs, structure.n_cores)
+    molecule at its pairs, exactly: the fast extended Hessian
+    (:func:`emlpack.properties.hessian.extended_hessian`) for EMLP's own energy (closed-form
+    electrostatics, the short range by its family), else the pairs' rows by reverse over
+    reverse of the whole energy (:func:`_pair_rows`). Measured with member 0 of
+    ``mini-eqm7``, 1 thread: hexane (19 pairs) 0.17-0.23 s instead of 0.78-0.83 s for forward
+    differences (:func:`difference_blocks`, used before for other models), C4H7NO2 (20 pairs)
+    0.14-0.17 s instead of 0.96-1.04 s; the differences' errors 4e-6-3e-5 relative."""
     k, n = 3 * structure.n_cores, 3 * (structure.n_cores + structure.n_pairs)
+    if not standard_energy(model):
+        rows = _pair_rows(model, structure)
+        hpp = rows[:, k:n]
+        return 0.5 * (hpp + hpp.T), rows[:, :k].T.copy()
     h = extended_hessian(model, structure)[1].numpy()
     hpp = h[k:n, k:n]
     return 0.5 * (hpp + hpp.T), h[:k, k:n].copy()
+
+
+def _pair_rows(model: EMLP, structure: Structure) -> np.ndarray:
+    """Rows (3P, 3(N + P)) of the position Hessian (eV/Å^2) of the molecule ``structure`` for
+    its pairs' coordinates: one graph of the gradient of ``model.energy`` (float64), one
+    reverse pass of it per row."""
+    g = model.graph(structure, dtype=torch.float64)
+    pos = g.positions.detach().clone().requires_grad_(True)
+    with torch.enable_grad():
+        (grad,) = torch.autograd.grad(model.energy(g, pos)[0], pos, create_graph=True)
+        flat = grad[structure.n_cores:].reshape(-1)
+        rows = np.zeros((flat.numel(), pos.numel()))
+        if not flat.requires_grad:  # an energy linear in the positions: no curvature
+            return rows
+        for r in range(flat.numel()):
+            (row,) = torch.autograd.grad(flat[r], pos, retain_graph=r < flat.numel() - 1,
+                                         materialize_grads=True)
+            rows[r] = row.reshape(-1).numpy()
+    return rows
 
 
 def difference_blocks(evaluate: Callable[[np.ndarray], tuple[float, np.ndarray]],

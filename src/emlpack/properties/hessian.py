@@ -21,32 +21,24 @@ from emlpack.nn.electrostatics import (
     coulomb_molecular_hessian,
     ewald_reciprocal_hessian_fractional,
 )
-from emlpack.nn.graph import Graph
 from emlpack.nn.potential import EMLP
-from emlpack.nn.scatter import pair_blocks_to_matrix, segment_sum
-from emlpack.nn.schnet_hessian import schnet_edge_hessian
+from emlpack.nn.short_range.hessian import geometric_variables, short_range_hessian
 from emlpack.structure import Structure
 
 
 # ---------------------------------------------------------------------- extended Hessian
 def _energy_function(model: EMLP, structure: Structure, dtype: torch.dtype):
     g = model.graph(structure, dtype=dtype)
-    n = g.n_particles
     if structure.pbc:
         cell0 = g.cell[0]
         frac0 = torch.linalg.solve(cell0.T, g.positions.T).T
         x0 = torch.cat([frac0.reshape(-1), cell0.reshape(-1), g.field[0]])
-
-        def energy(x: torch.Tensor) -> torch.Tensor:
-            cell = x[3 * n : 3 * n + 9].reshape(3, 3)
-            pos = x[: 3 * n].reshape(n, 3) @ cell
-            return model.energy(g, pos, cell[None], x[3 * n + 9 :][None])[0]
-
     else:
         x0 = torch.cat([g.positions.reshape(-1), g.field[0]])
 
-        def energy(x: torch.Tensor) -> torch.Tensor:
-            return model.energy(g, x[: 3 * n].reshape(n, 3), None, x[3 * n :][None])[0]
+    def energy(x: torch.Tensor) -> torch.Tensor:
+        pos, cell = geometric_variables(g, x[:-3], structure.pbc)
+        return model.energy(g, pos, cell if structure.pbc else None, x[-3:][None])[0]
 
     return energy, x0.detach()
 
@@ -75,23 +67,28 @@ def extended_hessian(
     ``method="fast"`` (default): the energy's parts separately, each exactly
     (equal to ``"reference"`` to ~1e-12 relative):
 
-    * SchNet: :func:`emlpack.nn.schnet_hessian.schnet_edge_hessian` (filters replaced by their
-      exact second-order Taylor expansion in the edge lengths, all directions batched in node
-      space) plus ``sum_e dE/dr_e d2r_e/dx2``;
+    * the short range: :func:`emlpack.nn.short_range.hessian.short_range_hessian`; for SchNet
+      (capability :class:`~emlpack.nn.short_range.protocol.LengthHessian`)
+      :func:`emlpack.nn.short_range.schnet_hessian.schnet_edge_hessian` (filters replaced by
+      their exact second-order Taylor expansion in the edge lengths, all directions batched
+      in node space) plus ``sum_e dE/dr_e d2r_e/dx2``, for other families reverse over
+      reverse on the short-range energy alone;
     * electrostatics in closed form: molecular Gaussian Coulomb
       (:func:`~emlpack.nn.electrostatics.coulomb_molecular_hessian`) or reciprocal Ewald in
       fractional coordinates and cell
       (:func:`~emlpack.nn.electrostatics.ewald_reciprocal_hessian_fractional`);
     * the field term (linear in the field): its blocks written out.
 
-    ``mixed=True`` (fast method only, opt-in): the SchNet directional derivatives in float32,
+    ``mixed=True`` (fast method with SchNet only, opt-in): the SchNet directional derivatives
+    in float32,
     1.3-1.6x faster again. Measured largest relative changes of the reported tensors
     (docs/response.md): crystal tensors (eps, C, e, d) <= 4.3e-7; IR frequencies <= 3e-8,
     intensities <= 1.3e-6; polarizability with relaxed cores 1.0e-5 (trained model, hexane:
     the float32 error grows as 1/omega^2 of the softest modes).
 
-    Models whose class overrides ``EMLP.energy`` or ``energy_parts`` (e.g. test toys with
-    extra terms) get the reference method, which differentiates whatever energy they define.
+    Models whose energy is not EMLP's composition (:func:`standard_energy`: e.g. test toys
+    with extra terms) get the reference method, which differentiates whatever energy they
+    define.
 
     ``method="reference"`` (alias ``"loop"``): one graph with ``create_graph`` and one reverse
     pass per non-field row of the whole energy (reverse over reverse, filter network
@@ -126,91 +123,14 @@ def extended_hessian(
 
 
 def standard_energy(model: EMLP) -> bool:
-    """Whether ``model``'s energy is EMLP's own (SchNet + electrostatics + field), the energy
-    that the fast Hessians here differentiate."""
+    """Whether ``model``'s energy is EMLP's composition (short range of its family +
+    electrostatics + field term, :meth:`EMLP.energy_parts`), the sum whose parts the closed
+    forms here and in the pair relaxation differentiate separately. A model that redefines
+    ``energy`` or ``energy_parts`` (a subclass adding a term) is differentiated as a whole
+    instead; which short-range family the model has does not matter here (its capabilities
+    are asked where they are used)."""
     cls = type(model)
     return cls.energy is EMLP.energy and cls.energy_parts is EMLP.energy_parts
-
-
-def short_range_position_hessian(model: EMLP, g: Graph, particles: torch.Tensor,
-                                 mixed: bool = False) -> torch.Tensor:
-    """Exact Hessian (eV/Å²) of the SchNet energy of the one structure of ``g`` (at
-    ``g.positions``, neighbour list as given) in the Cartesian positions of ``particles`` (k,),
-    the other particles and the cell held: shape (3k, 3k), particle by particle, x y z.
-
-    The fast method of :func:`extended_hessian` with only these directions: its cost grows
-    with 3k instead of the 3N + 3 extended variables (the pair block of a molecule, for the
-    pair relaxation's Newton steps). Molecules and crystals at fixed cell alike: with the cell
-    held, ``dr_e/dx`` and ``d2r_e/dx2`` are the molecular ones of the image-shifted edge
-    vectors. ``mixed``: the directional derivatives in float32 (as in :func:`extended_hessian`).
-    """
-    n = g.n_particles
-    cols = (3 * particles[:, None] + torch.arange(3, device=particles.device)).reshape(-1)
-    with torch.no_grad():
-        r0, jac, geometric = _edge_derivatives(model, g, g.positions.reshape(-1), pbc=False)
-        grad_r, h_sr = schnet_edge_hessian(
-            model.schnet, g.numbers, r0, g.edge_i, g.edge_j, jac[:, cols],
-            tangent_dtype=torch.float32 if mixed else None,
-        )
-        if len(cols) == 3 * n:
-            return h_sr + geometric(grad_r)
-        return h_sr + geometric(grad_r)[cols][:, cols]
-
-
-def _edge_derivatives(model: EMLP, g: Graph, x0: torch.Tensor, pbc: bool):
-    """Edge lengths ``r`` (E,), their Jacobian ``dr/dx`` (E, m) in the geometric extended
-    variables ``x`` (positions, or fractional coordinates and cell) and a function
-    ``w -> sum_e w_e d2r_e/dx2`` (m, m).
-
-    ``r = |d|`` with ``d = x_j - x_i`` (molecules) or ``d = (s_j - s_i + shift) A``
-    (crystals): ``dr/dd = u = d/r``, ``d2r/dd2 = (1 - u u^T)/r``; for crystals ``dr/ds_j = A u``,
-    ``dr/dA_ab = f_a u_b`` (``f = s_j - s_i + shift``) and ``d2d_b/ds_ja dA_a'c = delta_aa'
-    delta_bc``.
-    """
-    n = g.n_particles
-    i, j = g.edge_i, g.edge_j
-    n_edges = i.numel()
-    if pbc:
-        cell = x0[3 * n : 3 * n + 9].reshape(3, 3)
-        frac = x0[: 3 * n].reshape(n, 3)
-        pos = frac @ cell
-        f = frac[j] - frac[i] + g.edge_shift
-        m = 3 * n + 9
-    else:
-        cell = None
-        pos = x0[: 3 * n].reshape(n, 3)
-        m = 3 * n
-    d = model.edge_vectors(g, pos, g.cell if cell is None else cell[None])
-    r = torch.sqrt((d * d).sum(-1) + 1e-20)
-    u = d / r[:, None]
-    v = u @ cell.T if pbc else u  # dr/dx_j
-    jac = x0.new_zeros(n_edges, m)
-    rows = torch.arange(n_edges, device=x0.device)[:, None]
-    xyz = torch.arange(3, device=x0.device)
-    jac.index_put_((rows, 3 * j[:, None] + xyz), v, accumulate=True)
-    jac.index_put_((rows, 3 * i[:, None] + xyz), -v, accumulate=True)
-    if pbc:
-        jac[:, 3 * n :] = (f[:, :, None] * u[:, None, :]).reshape(n_edges, 9)
-    eye = torch.eye(3, dtype=x0.dtype, device=x0.device)
-
-    def geometric(w: torch.Tensor) -> torch.Tensor:
-        k = (w / r)[:, None, None] * (eye - u[:, :, None] * u[:, None, :])  # (E, 3, 3)
-        out = x0.new_zeros(m, m)
-        if not pbc:
-            out[:] = pair_blocks_to_matrix(k, i, j, n)
-            return out
-        out[: 3 * n, : 3 * n] = pair_blocks_to_matrix(cell @ k @ cell.T, i, j, n)
-        # position-cell: d2r/ds_ja dA_a'c = (A K)_ac f_a' + w u_c delta_aa'
-        t = torch.einsum("eac,eb->eabc", cell @ k, f)
-        t = t + torch.einsum("ab,ec->eabc", eye, w[:, None] * u)
-        mixed = segment_sum(torch.cat([t, -t]).reshape(2 * n_edges, 3, 9),
-                            torch.cat([j, i]), n).reshape(3 * n, 9)
-        out[: 3 * n, 3 * n :] = mixed
-        out[3 * n :, : 3 * n] = mixed.T
-        out[3 * n :, 3 * n :] = torch.einsum("ea,ebd,ec->abcd", f, k, f).reshape(9, 9)
-        return out
-
-    return r, jac, geometric
 
 
 def _field_hessian(x0: torch.Tensor, charges: torch.Tensor, n: int, pbc: bool) -> torch.Tensor:
@@ -253,12 +173,8 @@ def _extended_hessian_fast(
     x = x0.clone().requires_grad_(True)
     with torch.enable_grad():
         grad = torch.autograd.grad(energy(x), x)[0].detach()
+    h_sr = short_range_hessian(model, g, x0[:m], structure.pbc, mixed=mixed)
     with torch.no_grad():
-        r0, jac, geometric = _edge_derivatives(model, g, x0, structure.pbc)
-        grad_r, h_sr = schnet_edge_hessian(
-            model.schnet, g.numbers, r0, g.edge_i, g.edge_j, jac,
-            tangent_dtype=torch.float32 if mixed else None,
-        )
         q64 = g.charges.double()
         if structure.pbc:
             _, h_lr = ewald_reciprocal_hessian_fractional(
@@ -271,7 +187,7 @@ def _extended_hessian_fast(
                 c.coulomb_eps,
             )
         hess = _field_hessian(x0, g.charges, n, structure.pbc)
-        hess[:m, :m] += h_sr + geometric(grad_r) + h_lr.to(hess.dtype)
+        hess[:m, :m] += h_sr + h_lr.to(hess.dtype)
     return grad, hess
 
 

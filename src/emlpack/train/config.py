@@ -2,15 +2,27 @@
 
 Keys are nested sections (``data``, ``model``, ``augmentation``, ``loss``, ``training``,
 ``output``); an override names its key with dots, e.g. ``training.max_epochs=5`` or
-``model.n_features=64``; values are parsed as YAML (``1e-3``, ``true``, ``[0.8, 0.1, 0.1]``).
-Unknown keys are errors (a misspelt key never slips through silently).
+``model.short_range.n_features=64``; values are parsed as YAML (``1e-3``, ``true``,
+``[0.8, 0.1, 0.1]``). Unknown keys are errors (a misspelt key never slips through silently).
+
+The ``model`` section (:class:`emlpack.nn.potential.ModelConfig`): ``family`` (the
+short-range family, ``schnet`` by default), ``short_range`` (that family's parameters), the
+cutoff and the electrostatics. Short-range parameters belong to the family they were written
+for: the family is resolved first (defaults <- file <- overrides), its parameters start from
+its defaults, then the file's (when the file is for the same family; an override
+``model.family=painn`` on a SchNet config file leaves the file's SchNet parameters out, with a
+warning) and the ``model.short_range.KEY=VALUE`` overrides. The version-1 spelling, SchNet's
+parameters directly in ``model`` (``model.n_features: 64``, ``model.n_features=64``), still
+means SchNet's ``short_range``.
 """
 
 from __future__ import annotations
 
 import copy
+import logging
 import os
 from pathlib import Path
+from typing import Any
 
 import torch
 import yaml
@@ -18,9 +30,12 @@ import yaml
 from emlpack._files import write_text_atomic
 from emlpack.data.augment import AugmentationConfig
 from emlpack.errors import EmlpackError
-from emlpack.nn.potential import ModelConfig
+from emlpack.nn.potential import DEFAULT_FAMILY, ModelConfig, nest_flat_keys
+from emlpack.nn.short_range import families
 from emlpack.overrides import load_yaml, nested, parse_override
 from emlpack.train.loss import LossWeights
+
+log = logging.getLogger(__name__)
 
 DEFAULTS: dict = {
     "data": {
@@ -57,7 +72,7 @@ DEFAULTS: dict = {
         # schedule; ignored when the run resumes from its own last.pt. The checkpoint's lineage
         # (what it was trained on) is carried into this run's checkpoints
         "init_weights": None,
-        # parameter-name prefixes kept fixed (e.g. [schnet.embedding] in a fine-tune)
+        # parameter-name prefixes kept fixed (e.g. [short_range.embedding] in a fine-tune)
         "freeze": [],
     },
     "output": {
@@ -92,8 +107,10 @@ def merge(base: dict, update: dict, where: str = "") -> dict:
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> dict:
-    """The resolved configuration: defaults <- YAML file <- overrides."""
+    """The resolved configuration: defaults <- YAML file <- overrides (the ``model`` section
+    as described in the module docstring)."""
     cfg = copy.deepcopy(DEFAULTS)
+    file_model = None
     if path is not None:
         path = Path(path)
         if not path.is_file():
@@ -104,11 +121,102 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
             raise ConfigError(f"{path}: not valid YAML: {exc}") from None
         if not isinstance(loaded, dict):
             raise ConfigError(f"{path}: the top level must be a mapping")
+        loaded = dict(loaded)
+        file_model = loaded.pop("model", None)
         cfg = merge(cfg, loaded)
+    model_overrides = []
     for text in overrides or []:
-        cfg = merge(cfg, nested(*parse_override(text)))
+        keys, value = parse_override(text)
+        if keys[0] == "model":
+            model_overrides.append((keys[1:], value, text))
+        else:
+            cfg = merge(cfg, nested(keys, value))
+    cfg["model"] = resolve_model_section(file_model, model_overrides)
     validate(cfg)
     return cfg
+
+
+def resolve_model_section(
+    section: Any = None, overrides: list[tuple[list[str], Any, str]] | None = None
+) -> dict:
+    """The ``model`` section from a config file's ``section`` (None: none) and the model
+    overrides ``(keys below model, value, text)``: family first, then its parameters (module
+    docstring); every parameter of the family present. Bad keys raise :class:`ConfigError`."""
+    if section is None:
+        section = {}
+    if not isinstance(section, dict):
+        raise ConfigError("config key 'model' must be a mapping")
+    try:
+        section = nest_flat_keys(section)
+    except ValueError as exc:
+        raise ConfigError(f"model: {exc}") from None
+    # an override of the whole section (model={...}) counts as one override per key
+    expanded: list[tuple[list[str], Any, str]] = []
+    for keys, value, text in overrides or []:
+        if not keys:
+            if not isinstance(value, dict):
+                raise ConfigError(f"override {text!r}: config key 'model' must be a mapping")
+            expanded.extend(([k], v, text) for k, v in value.items())
+        else:
+            expanded.append((keys, value, text))
+    file_family = section.get("family", DEFAULT_FAMILY)
+    family = file_family
+    for keys, value, _ in expanded:
+        if keys == ["family"]:
+            family = value
+    if not isinstance(family, str) or family not in families():
+        raise ConfigError(f"model.family must be one of {', '.join(families())}, got"
+                          f" {family!r}")
+    out = ModelConfig(family=family).to_dict()
+    for key, value in section.items():
+        if key not in ("family", "short_range"):
+            out[key] = value
+    file_params = section.get("short_range") or {}
+    if not isinstance(file_params, dict):
+        raise ConfigError("config key 'model.short_range' must be a mapping")
+    if family == file_family:
+        out["short_range"].update(file_params)
+    elif file_params:
+        log.warning("model.family=%s replaces the config file's family %s: its short_range"
+                    " parameters (%s) are not used; %s's defaults apply unless overridden"
+                    " (model.short_range.KEY=VALUE)", family, file_family,
+                    ", ".join(sorted(file_params)), family)
+    schnet_params = set(ModelConfig(family=DEFAULT_FAMILY).short_range)
+    for keys, value, text in expanded:
+        head = keys[0]
+        if keys == ["family"]:
+            continue
+        if head == "short_range":
+            if len(keys) == 1:
+                if not isinstance(value, dict):
+                    raise ConfigError(f"override {text!r}: config key 'model.short_range'"
+                                      " must be a mapping")
+                updates = value
+            elif len(keys) == 2:
+                updates = {keys[1]: value}
+            else:
+                raise ConfigError(f"override {text!r}: 'model.short_range.{keys[1]}' is not"
+                                  " a mapping")
+            unknown = sorted(set(updates) - set(out["short_range"]))
+            if unknown:
+                raise ConfigError(f"override {text!r}: short-range family {family!r} has no"
+                                  f" parameter(s) {unknown} (its parameters:"
+                                  f" {sorted(out['short_range'])})")
+            out["short_range"].update(updates)
+        elif head in out:
+            if len(keys) > 1:
+                raise ConfigError(f"override {text!r}: 'model.{head}' is not a mapping")
+            out[head] = value
+        elif head in schnet_params and len(keys) == 1:  # version-1 spelling: SchNet's
+            if family != DEFAULT_FAMILY:
+                raise ConfigError(f"override {text!r}: model.{head} beside the others is a"
+                                  f" SchNet parameter (version-1 spelling); family {family!r}"
+                                  f" takes model.short_range.{head}=...")
+            out["short_range"][head] = value
+        else:
+            raise ConfigError(f"unknown config key {'model.' + '.'.join(keys)!r} (known:"
+                              f" {sorted(out)})")
+    return out
 
 
 def validate(cfg: dict) -> None:

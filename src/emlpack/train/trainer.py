@@ -287,7 +287,7 @@ class Trainer:
         payload = read_checkpoint(path)
         saved = payload["metadata"].get("config", {})
         for section in ("model", "data"):
-            if saved.get(section) != self.cfg[section]:
+            if not self._same_section(section, saved.get(section)):
                 raise ValueError(
                     f"{path}: the run was started with a different '{section}' config; resume"
                     " with the same config, or start afresh (--restart / another output.dir)")
@@ -307,6 +307,17 @@ class Trainer:
         self.bad_epochs = int(state["bad_epochs"])
         torch.set_rng_state(state["torch_rng"])
 
+    def _same_section(self, section: str, saved: dict | None) -> bool:
+        """Whether the config ``section`` saved in a checkpoint equals this run's; ``model``
+        compared normalised (:meth:`ModelConfig.from_dict`: a run started before the
+        short-range families saved the version-1 flat spelling)."""
+        if section != "model" or saved is None:
+            return saved == self.cfg[section]
+        try:
+            return ModelConfig.from_dict(saved) == self.model_config
+        except (TypeError, ValueError):
+            return False
+
     def init_weights(self, path: str | Path) -> None:
         """Start from the weights of the checkpoint ``path`` (its model config must equal this
         run's); optimizer, schedule and counters start afresh (a fine-tune: this run's data and
@@ -320,8 +331,8 @@ class Trainer:
              "epoch": meta.get("epoch"), "note": "written before lineage was recorded"}])
         saved = ModelConfig.from_dict(payload["config"])
         if saved != self.model_config:
-            diff = sorted(k for k, v in saved.to_dict().items()
-                          if v != self.model_config.to_dict().get(k))
+            mine, theirs = _flat(self.model_config.to_dict()), _flat(saved.to_dict())
+            diff = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
             raise ConfigError(f"training.init_weights={path}: its model differs from this run's"
                               f" model config in {', '.join(diff)}")
         self.model.load_state_dict(payload["state_dict"])
@@ -648,3 +659,14 @@ def train_ensemble(cfg: dict, seeds: list[int], resume: bool = True) -> list[Pat
         c["output"]["dir"] = str(Path(cfg["output"]["dir"]) / f"seed{seed}")
         paths.append(Trainer(c).train(resume=resume))
     return paths
+
+
+def _flat(d: dict, where: str = "") -> dict:
+    """A nested dict as ``{"a.b": value}`` (for naming the keys that differ)."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{where}{k}."))
+        else:
+            out[where + k] = v
+    return out

@@ -13,45 +13,53 @@ Exactly the network of the paper and of the authors' TensorFlow reference:
 * output MLP ``F -> F -> F/2 -> 1`` with shifted softplus ``ssp(x) = softplus(x) - ln 2``,
   giving one energy (eV) per particle.
 
-Distances are ``sqrt(|d|^2 + 1e-20)`` as in the reference (finite gradient at d = 0).
-The filter of an unordered pair is computed once and the message is scattered both ways.
+Distances are ``sqrt(|d|^2 + 1e-20)`` as in the reference (finite gradient at d = 0,
+:func:`emlpack.nn.short_range.common.edge_lengths`). The filter of an unordered pair is
+computed once and the message is scattered both ways.
+
+The short-range family ``"schnet"`` (:mod:`emlpack.nn.short_range.protocol`) with every
+capability: held filters (:class:`HeldFilters`), a filter table (:class:`FilterTable`) and the
+exact edge-length Hessian (:mod:`emlpack.nn.short_range.schnet_hessian`); with frozen
+parameters it evaluates its folded weights (:meth:`SchNet.folded_weights`).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
 from torch.autograd.function import once_differentiable
 
-from emlpack import geometry
+from emlpack.nn.short_range.common import (
+    LN2,
+    cosine_cutoff,
+    edge_lengths,
+    shifted_softplus,
+    softplus_slopes,
+)
+from emlpack.nn.short_range.schnet_hessian import schnet_edge_hessian
+from emlpack.structure import PAIR_NUMBER
 
 if TYPE_CHECKING:
     from torch.autograd.function import FunctionCtx
 
-LN2 = math.log(2.0)
+__all__ = ["SCHNET_DEFAULTS", "FilterTable", "HeldFilters", "SchNet"]
 
-
-def shifted_softplus(x: torch.Tensor) -> torch.Tensor:
-    """ssp(x) = ln(1 + e^x) - ln 2."""
-    return nn.functional.softplus(x) - LN2
-
-
-def softplus_slopes(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """First and second derivatives of ``softplus(x)`` as torch's autograd takes them
-    (threshold 20: slope 1 above, curvature 0 from 20 on)."""
-    sig = torch.sigmoid(x)
-    return torch.where(x > 20.0, 1.0, sig), torch.where(x >= 20.0, 0.0, sig * (1.0 - sig))
-
-
-def cosine_cutoff(r: torch.Tensor, cutoff: float, transition: float) -> torch.Tensor:
-    """1 below ``cutoff - transition``, cosine switch to 0 at ``cutoff`` (Å): the formula of
-    :func:`emlpack.geometry.cosine_cutoff` on tensors."""
-    return geometry.cosine_cutoff(r, cutoff, transition, xp=torch)
+#: the family's parameters and their defaults (the paper's model; cutoff and transition are
+#: the eMLP's, 4 and 0.5 Å)
+SCHNET_DEFAULTS = {
+    "n_features": 512,
+    "n_filters": 128,
+    "n_rbf": 32,
+    "n_interactions": 4,
+    "rbf_start": 0.0,
+    "rbf_end": 4.0,
+    "message_norm": 70.0,
+}
 
 
 def convolve(
@@ -190,6 +198,18 @@ class HeldFilters:
     free: torch.Tensor
     table: FilterTable | None = None
 
+    def subset(
+        self, rows: torch.Tensor, old_to_new: torch.Tensor, free: torch.Tensor
+    ) -> HeldFilters:
+        """The held edges ``rows`` (H,) bool, renumbered by ``old_to_new`` (N,), with the new
+        graph's free edges ``free`` (no filter recomputed; the table is kept)."""
+        return HeldFilters(i=old_to_new[self.i[rows]], j=old_to_new[self.j[rows]],
+                           filters=[f[rows] for f in self.filters], free=free, table=self.table)
+
+    def to(self, dtype: torch.dtype) -> HeldFilters:
+        """The held filters rounded to ``dtype`` (not recomputed)."""
+        return replace(self, filters=[f.to(dtype) for f in self.filters])
+
 
 class GaussianBasis(nn.Module):
     """Gaussian radial basis: centres ``start + k w``, width ``w = (end - start)/n``."""
@@ -245,7 +265,12 @@ class Interaction(nn.Module):
 
 
 class SchNet(nn.Module):
-    """Per-particle short-range energies (eV) of a batch of structures."""
+    """Per-particle short-range energies (eV) of a batch of structures: the family
+    ``"schnet"`` (:class:`~emlpack.nn.short_range.protocol.ShortRange`)."""
+
+    #: capability :class:`~emlpack.nn.short_range.protocol.FrozenAnyDtype`: the folded
+    #: weights are cast to the input's dtype
+    frozen_any_dtype = True
 
     def __init__(
         self,
@@ -258,8 +283,10 @@ class SchNet(nn.Module):
         rbf_start: float = 0.0,
         rbf_end: float = 4.0,
         message_norm: float = 70.0,
-        n_embeddings: int = 100,
+        n_embeddings: int = PAIR_NUMBER + 1,
     ) -> None:
+        """The paper's hyperparameters by default (lengths in Å); ``n_embeddings``: rows of
+        the embedding (atomic numbers below it; the electron pair is 99)."""
         super().__init__()
         self.cutoff = cutoff
         self.cutoff_transition = cutoff_transition
@@ -277,14 +304,25 @@ class SchNet(nn.Module):
     def forward(
         self,
         numbers: torch.Tensor,
+        vectors: torch.Tensor,
+        i: torch.Tensor,
+        j: torch.Tensor,
+        held: HeldFilters | None = None,
+    ) -> torch.Tensor:
+        """Atomic energies (N,) (eV) from particle numbers and the half-list edge vectors
+        ``vectors`` (E, 3) (Å) of the edges ``(i, j)``; with ``held`` (frozen weights only) the
+        edges ``held.i``, ``held.j`` contribute with their held filters in addition."""
+        return self.energies_from_lengths(numbers, edge_lengths(vectors), i, j, held)
+
+    def energies_from_lengths(
+        self,
+        numbers: torch.Tensor,
         r: torch.Tensor,
         i: torch.Tensor,
         j: torch.Tensor,
         held: HeldFilters | None = None,
     ) -> torch.Tensor:
-        """Atomic energies (N,) from particle numbers and the half-list edge lengths ``r`` (Å)
-        of the edges ``(i, j)``; with ``held`` (frozen weights only) the edges ``held.i``,
-        ``held.j`` contribute with their held filters in addition."""
+        """:meth:`forward` from the edge lengths ``r`` (E,) (Å): SchNet sees only those."""
         frozen = not any(p.requires_grad for p in self._parameter_list())
         if held is not None and not frozen:
             raise ValueError("held filters need frozen parameters (requires_grad=False)")
@@ -382,7 +420,7 @@ class SchNet(nn.Module):
         ``W(r0) + W'(r0) (r - r0) + W''(r0) (r - r0)^2 / 2`` is the filters' exact second-order
         Taylor expansion: a function of ``r`` through it has the same value, gradient and
         Hessian at ``r0`` as through the filter network (used by
-        :mod:`emlpack.nn.schnet_hessian`). Softplus derivatives follow torch's threshold
+        :mod:`emlpack.nn.short_range.schnet_hessian`). Softplus derivatives follow torch's threshold
         (``x > 20``: slope 1, curvature 0), so they equal autograd's exactly.
         """
         fw = self.folded_weights(r.dtype, r.device)
@@ -451,6 +489,34 @@ class SchNet(nn.Module):
         rbf = self.rbf(r)
         fc = cosine_cutoff(r, self.cutoff, self.cutoff_transition)[:, None]
         return [self._filter(f, rbf, fc) for f in fw["filters"]]
+
+    # ------------------------------------------------------------------ capabilities
+    def hold(
+        self, vectors: torch.Tensor, i: torch.Tensor, j: torch.Tensor, free: torch.Tensor
+    ) -> HeldFilters:
+        """Capability :class:`~emlpack.nn.short_range.protocol.HoldsEdges`: the filters of the
+        edges ``(i, j)`` of vectors ``vectors`` (H, 3) (Å), computed once (frozen weights)."""
+        with torch.no_grad():
+            filters = self.frozen_filters(edge_lengths(vectors.detach()))
+        return HeldFilters(i=i, j=j, filters=filters, free=free)
+
+    def tabulate(self, held: HeldFilters, spacing: float) -> HeldFilters:
+        """Capability :class:`~emlpack.nn.short_range.protocol.TabulatesEdges`: ``held`` with
+        the free edges' filters from :meth:`filter_table` (``spacing`` Å)."""
+        return replace(held, table=self.filter_table(spacing))
+
+    def length_hessian(
+        self,
+        numbers: torch.Tensor,
+        r: torch.Tensor,
+        i: torch.Tensor,
+        j: torch.Tensor,
+        jac: torch.Tensor,
+        tangent_dtype: torch.dtype | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Capability :class:`~emlpack.nn.short_range.protocol.LengthHessian`:
+        :func:`~emlpack.nn.short_range.schnet_hessian.schnet_edge_hessian`."""
+        return schnet_edge_hessian(self, numbers, r, i, j, jac, tangent_dtype=tangent_dtype)
 
     @staticmethod
     def _filter(f: tuple[torch.Tensor, ...], rbf: torch.Tensor, fc: torch.Tensor) -> torch.Tensor:

@@ -5,8 +5,10 @@ with ``r`` the E half-list edge lengths and ``J = dr/dx`` (E, m):
 
 ``H = J^T (d2E/dr dr) J + sum_e (dE/dr_e) d2r_e/dx2``;
 
-:func:`schnet_edge_hessian` returns ``dE/dr`` and the first term, the caller adds the second
-(a cheap function of the geometry). Two exact rewritings make the first term cheap:
+:func:`schnet_edge_hessian` (SchNet's capability
+:meth:`~emlpack.nn.short_range.schnet.SchNet.length_hessian`) returns ``dE/dr`` and the first
+term, the caller adds the second (a cheap function of the geometry). Two exact rewritings
+make the first term cheap:
 
 * the filters enter through their second-order Taylor expansion in ``r``
   (:meth:`SchNet.filter_taylor`), so no filter network is differentiated;
@@ -28,7 +30,7 @@ import torch
 from torch import nn
 
 from emlpack.nn.scatter import segment_sum
-from emlpack.nn.schnet import SchNet, softplus_slopes
+from emlpack.nn.short_range.common import softplus_slopes
 
 
 def _node_conv(m: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
@@ -49,7 +51,7 @@ def _padded_groups(side: torch.Tensor, n: int, n_edges: int) -> torch.Tensor:
 
 
 def schnet_edge_hessian(
-    schnet: SchNet,
+    schnet: nn.Module,
     numbers: torch.Tensor,
     r: torch.Tensor,
     i: torch.Tensor,
@@ -58,9 +60,10 @@ def schnet_edge_hessian(
     tangent_dtype: torch.dtype | None = None,
     max_numbers: int = 2**25,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(dE/dr (E,), J^T (d2E/dr dr) J (m, m))`` of the summed SchNet energy (eV, Å) of one
-    structure with particle numbers ``numbers`` (N,), half-list edges ``(i, j)`` of lengths
-    ``r`` (E,) and edge Jacobian ``jac = dr/dx`` (E, m), in ``r``'s dtype.
+    """``(dE/dr (E,), J^T (d2E/dr dr) J (m, m))`` of the summed energy (eV, Å) of the
+    :class:`~emlpack.nn.short_range.schnet.SchNet` ``schnet`` for one structure with particle
+    numbers ``numbers`` (N,), half-list edges ``(i, j)`` of lengths ``r`` (E,) and edge
+    Jacobian ``jac = dr/dx`` (E, m), in ``r``'s dtype.
 
     ``tangent_dtype`` (default: ``r``'s): dtype of the m directional derivatives (the dense
     products); ``torch.float32`` halves their cost at ~1e-7 relative error of the result.
