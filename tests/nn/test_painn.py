@@ -248,6 +248,43 @@ def test_hessian_matches_finite_differences_of_forces(model):
     assert hessian.abs().max() > 1.0  # eV/Å^2
 
 
+def _centrosymmetric():
+    """A core at the origin and pairs of particles at +-x (the inversion maps the structure
+    onto itself: the central core's vector features vanish at every layer)."""
+    numbers, half = random_molecule(5, seed=15, box=2.0)
+    half = half - half.mean(0) + torch.tensor([0.3, 0.2, 0.1], dtype=torch.float64)
+    positions = torch.cat([torch.zeros(1, 3, dtype=torch.float64), half, -half])
+    return torch.cat([torch.tensor([6]), numbers, numbers]), positions
+
+
+@pytest.mark.parametrize("norm_eps", [1.0, 1e-8])
+def test_hessian_smooth_at_a_centre_of_symmetry(norm_eps):
+    """The central core's Hessian block by autograd equals finite differences of its forces
+    (step 1e-4 Å): smooth where its vector features vanish. With PaiNN's plain norm
+    (``norm_eps = 1e-8``) the norm's cone makes the two disagree (the test can fail)."""
+    model = random_painn(norm_eps=norm_eps)
+    numbers, positions = _centrosymmetric()
+    i, j = half_edges(positions, None)
+
+    def e(x):
+        return energy(model, numbers, torch.cat([x[None], positions[1:]]), i, j)
+
+    block = torch.autograd.functional.hessian(e, positions[0])
+    h = 1e-4
+    fd = torch.zeros(3, 3, dtype=torch.float64)
+    for k in range(3):
+        step = torch.zeros_like(positions)
+        step[0, k] = h
+        fd[:, k] = -(forces(model, numbers, positions + step, i, j)[0]
+                     - forces(model, numbers, positions - step, i, j)[0]) / (2 * h)
+    gap = (block - fd).abs().max().item()
+    if norm_eps == 1.0:
+        assert gap < 1e-5 * block.abs().max().item()
+        assert block.abs().max() > 1.0
+    else:
+        assert gap > 0.1 * block.abs().max().item()
+
+
 # ------------------------------------------------------------------ zero-length edges
 def _pair_on_core(offset: torch.Tensor):
     """A molecule whose particle 1 (an electron pair) sits at ``offset`` from core 0."""

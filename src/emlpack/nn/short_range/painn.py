@@ -24,8 +24,9 @@ Smooth everywhere, zero-length edges included (an electron pair may sit on a cor
   instead of jumping (no 0/0), and every edge function is analytic in ``d``. The smoothing
   length ``sqrt(edge_eps)`` (0.1 Å by default) bounds the slope of ``u`` (``1/sqrt(edge_eps)``
   at ``d = 0``) and so the forces and Hessians of a pair that sits on a core; above it the
-  learned radial filters absorb the factor ``|d| / r`` (pairs sit >= 0.25 Å from their cores
-  in the data, hydride pairs excepted).
+  learned radial filters absorb the factor ``|d| / r`` (in mini-eQM7, 99 % of the pairs sit
+  more than 0.29 Å from their nearest core, the closest 0.10 Å). The cutoff applies to ``r``,
+  so the switch ends at ``|d| = sqrt(cutoff^2 - edge_eps)``, inside the neighbour list.
 * Radial basis: Gaussians in ``r`` (:class:`emlpack.nn.schnet.GaussianBasis`); cutoff
   :func:`emlpack.geometry.cosine_cutoff` (flat up to ``cutoff - transition``, 0 at
   ``cutoff``, zero slope at both ends): energies and forces are continuous as an edge crosses
@@ -33,6 +34,12 @@ Smooth everywhere, zero-length edges included (an electron pair may sit on a cor
 * ``n(x) = sqrt(|x|^2 + norm_eps)`` replaces PaiNN's ``|x|``: the norm has a cone at ``x = 0``
   (e.g. the vector features of an atom at a centre of symmetry), whose curvature would
   dominate Hessians there; with ``norm_eps = 1`` it is smooth with curvature <= 1.
+
+Written here rather than taken from a library (evaluated 2026-12, torch 2.13 CPU): SchNetPack
+2.1.1's ``PaiNN`` wants the full edge list (messages scatter to ``idx_i`` only), gives NaN at
+a zero-length edge (``r / torch.norm(r)``) and has no flat part in its cosine cutoff;
+mace-torch 0.3.16 pins ``e3nn==0.4.4``, takes positions, a full edge list and shifts, and its
+Bessel basis ``sin(x)/x`` and normalised directions give NaN energies at a zero-length edge.
 """
 
 from __future__ import annotations
