@@ -79,7 +79,11 @@ FAMILIES = families()
 
 #: small parameters per family (fast, every part exercised); a family without an entry is
 #: tested with its defaults
-FAMILY_PARAMS = {"schnet": SMALL, "radial": {"n_features": 6, "n_hidden": 12}}
+#: the weights' standard deviation times sqrt(fan_in), by family (default 2): PaiNN's gated
+#: vector products grow without bound at 2 (forces ~1e3 eV/Å at 1, ~1 at 0.7)
+WEIGHT_SCALE = {"painn": 0.7}
+FAMILY_PARAMS = {"schnet": SMALL, "radial": {"n_features": 6, "n_hidden": 12},
+                 "painn": {"n_features": 8, "n_interactions": 2, "n_rbf": 8}}
 
 
 def random_model(seed: int = 0, dtype=torch.float64, family: str = "schnet",
@@ -87,9 +91,10 @@ def random_model(seed: int = 0, dtype=torch.float64, family: str = "schnet",
     """Small EMLP of ``family`` with seeded random weights and N(0, 0.1^2) biases (so biases
     matter); ``config``: other :class:`ModelConfig` fields.
 
-    Dense weights are N(0, 4/fan_in): with torch's default initialisation (or the reference
-    fixture's weights) the SchNet forces are only ~1e-3 eV/Å, too small next to the
-    electrostatic forces for the tests to be sensitive; here they are ~1 eV/Å.
+    Dense weights are N(0, 4/fan_in) (PaiNN: :data:`WEIGHT_SCALE`): with torch's default
+    initialisation (or the reference fixture's weights) the SchNet forces are only ~1e-3 eV/Å,
+    too small next to the electrostatic forces for the tests to be sensitive; here they are
+    ~1 eV/Å.
     """
     torch.manual_seed(seed)
     params = FAMILY_PARAMS.get(family, {})
@@ -99,7 +104,7 @@ def random_model(seed: int = 0, dtype=torch.float64, family: str = "schnet",
             if name.endswith("bias"):
                 p.normal_(0.0, 0.1)
             elif p.ndim == 2 and not name.startswith("short_range.embedding"):
-                p.normal_(0.0, 2.0 / math.sqrt(p.shape[1]))
+                p.normal_(0.0, WEIGHT_SCALE.get(family, 2.0) / math.sqrt(p.shape[1]))
     return model.to(dtype)
 
 

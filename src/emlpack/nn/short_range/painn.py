@@ -25,10 +25,11 @@ Smooth everywhere, zero-length edges included (an electron pair may sit on a cor
   length ``sqrt(edge_eps)`` (0.1 Å by default) bounds the slope of ``u`` (``1/sqrt(edge_eps)``
   at ``d = 0``) and so the forces and Hessians of a pair that sits on a core; above it the
   learned radial filters absorb the factor ``|d| / r`` (in mini-eQM7, 99 % of the pairs sit
-  more than 0.29 Å from their nearest core, the closest 0.10 Å). The cutoff applies to ``r``,
-  so the switch ends at ``|d| = sqrt(cutoff^2 - edge_eps)``, inside the neighbour list.
-* Radial basis: Gaussians in ``r`` (:class:`emlpack.nn.schnet.GaussianBasis`); cutoff
-  :func:`emlpack.geometry.cosine_cutoff` (flat up to ``cutoff - transition``, 0 at
+  more than 0.29 Å from their nearest core, the closest 0.10 Å).
+* Radial basis: Gaussians in ``r`` (:class:`emlpack.nn.short_range.schnet.GaussianBasis`);
+  cutoff :func:`emlpack.geometry.cosine_cutoff` of the edge's length ``|d|`` (as SchNet's:
+  ``sqrt(|d|^2 + 1e-20)``, so the switch and its kinks sit where the neighbour list and every
+  family put them; flat, hence smooth, at ``d = 0``) (flat up to ``cutoff - transition``, 0 at
   ``cutoff``, zero slope at both ends): energies and forces are continuous as an edge crosses
   the cutoff.
 * ``n(x) = sqrt(|x|^2 + norm_eps)`` replaces PaiNN's ``|x|``: the norm has a cone at ``x = 0``
@@ -50,7 +51,8 @@ from torch import nn
 from emlpack import geometry
 from emlpack.errors import InputError
 from emlpack.nn.scatter import segment_sum
-from emlpack.nn.schnet import GaussianBasis
+from emlpack.nn.short_range.common import edge_lengths
+from emlpack.nn.short_range.schnet import GaussianBasis
 
 __all__ = ["PaiNN"]
 
@@ -139,7 +141,8 @@ class PaiNN(nn.Module):
         f, n_t = self.n_features, self.n_interactions
         r = torch.sqrt((vectors * vectors).sum(-1) + self.edge_eps)  # (E,)
         u = vectors / r[:, None]  # (E, 3), smooth, 0 at d = 0
-        fc = geometry.cosine_cutoff(r, self.cutoff, self.cutoff_transition, xp=torch)
+        fc = geometry.cosine_cutoff(edge_lengths(vectors), self.cutoff, self.cutoff_transition,
+                                    xp=torch)
         if self.message_norm != 1.0:
             fc = fc / self.message_norm
         # filters (rbf W_f + b_f) f_c as products [rbf f_c, f_c] [W_f; b_f] (no broadcast of
