@@ -82,6 +82,9 @@ FAMILIES = families()
 #: the weights' standard deviation times sqrt(fan_in), by family (default 2): PaiNN's gated
 #: vector products grow without bound at 2 (forces ~1e3 eV/Å at 1, ~1 at 0.7)
 WEIGHT_SCALE = {"painn": 0.7}
+#: added to the seed, by family: PaiNN's seed-0 weights (at 0.7) merge water's lone pairs (no
+#: separate minimum to relax to, so the relaxation and response tests would test nothing)
+SEED_OFFSET = {"painn": 1}
 FAMILY_PARAMS = {"schnet": SMALL, "radial": {"n_features": 6, "n_hidden": 12},
                  "painn": {"n_features": 8, "n_interactions": 2, "n_rbf": 8}}
 
@@ -96,7 +99,7 @@ def random_model(seed: int = 0, dtype=torch.float64, family: str = "schnet",
     too small next to the electrostatic forces for the tests to be sensitive; here they are
     ~1 eV/Å.
     """
-    torch.manual_seed(seed)
+    torch.manual_seed(seed + SEED_OFFSET.get(family, 0))
     params = FAMILY_PARAMS.get(family, {})
     model = EMLP(ModelConfig(family=family, short_range=params, **config))
     with torch.no_grad():
