@@ -386,6 +386,15 @@ def check_atoms(atoms: Atoms, where: str, elements: Collection[int], periodic: b
                          " this is a molecule")
     if periodic is False and is_crystal:
         raise InputError(f"{where}: {command} needs a molecule; this is a crystal (pbc true)")
+    with np.errstate(over="ignore", invalid="ignore"):  # e.g. 1e308 Å: refused below
+        _check_distances(atoms, where, cores, cell, is_crystal, cutoff)
+
+
+def _check_distances(atoms: Atoms, where: str, cores: np.ndarray, cell: np.ndarray,
+                     is_crystal: bool, cutoff: float | None) -> None:
+    from ase.data import chemical_symbols
+
+    numbers = atoms.numbers
     pos = atoms.positions[cores]
     if len(pos) > 1:
         d = pos[:, None, :] - pos[None, :, :]

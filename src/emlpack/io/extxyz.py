@@ -294,6 +294,9 @@ def _parse_frame(text: str, source: str, line: int) -> Atoms:
         for where in (atoms.info, results):
             if key in where:
                 _vector(where[key], key, source)
+    if "charge" in atoms.info:
+        _scalar(atoms.info["charge"], "charge", source)
+    _finite_positions(atoms, source)
     return atoms
 
 
@@ -610,13 +613,13 @@ def _shown(value: object) -> str:
 
 def _scalar(value: object, key: str, source: str) -> float:
     if isinstance(value, (bool, np.bool_)):
-        raise ExtxyzError(f"{source}: '{key}' must be a number, got {value!r}")
+        raise ExtxyzError(f"{source}: '{key}' must be a number, got {_shown(value)}")
     try:
         out = float(np.asarray(value, dtype=np.float64).reshape(()))
     except (TypeError, ValueError):
-        raise ExtxyzError(f"{source}: '{key}' must be a number, got {value!r}") from None
+        raise ExtxyzError(f"{source}: '{key}' must be a number, got {_shown(value)}") from None
     if not np.isfinite(out):
-        raise ExtxyzError(f"{source}: '{key}' is not finite: {value!r}")
+        raise ExtxyzError(f"{source}: '{key}' is not finite: {_shown(value)}")
     return out
 
 

@@ -40,8 +40,9 @@ def neighbor_list_widths(positions: np.ndarray, cell: np.ndarray, pbc: bool) -> 
         return abs(float(np.linalg.det(cell))) / np.maximum(areas, 1e-300)
     if not len(positions):
         return np.ones(3)
-    extent = positions.max(axis=0) - positions.min(axis=0)
-    return np.maximum(np.where(extent < 1e-6, 1.0, extent) * 1.01, 1.0)
+    with np.errstate(over="ignore", invalid="ignore"):  # 1e308 Å: an infinite width
+        extent = positions.max(axis=0) - positions.min(axis=0)
+        return np.maximum(np.where(extent < 1e-6, 1.0, extent) * 1.01, 1.0)
 
 
 def neighbor_list_problem(positions: np.ndarray, cell: np.ndarray, pbc: bool,
