@@ -177,8 +177,7 @@ def test_free_text_comment_containing_energy_is_accepted(model_file, tmp_path, c
     path = write_xyz(tmp_path / "free.xyz", water_rows(n_pairs=4),
                      comment="water, energy minimised; charge unknown")
     out = tmp_path / "pol.json"
-    assert main(["polarizability", str(model_file), str(path), "--relax", "none",
-                 "-o", str(out), "--quiet"]) == 0
+    assert main(["polarizability", str(model_file), str(path), "-o", str(out), "--quiet"]) == 0
     data = json.loads(out.read_text())
     assert data["structure"] == f"{path}, frame 0"
     from emlpack.io import read_structures
@@ -330,12 +329,12 @@ def test_sigint_during_md_exits_130_with_a_resume_hint(model_file, tmp_path, cap
 
 
 def test_sigint_in_a_command_that_does_not_resume(model_file, tmp_path, capsys, monkeypatch):
-    import emlpack.properties.ir
+    import emlpack.properties.hessian
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(emlpack.properties.ir, "ir_spectrum", interrupted)
+    monkeypatch.setattr(emlpack.properties.hessian, "extended_hessian", interrupted)
     path = write_xyz(tmp_path / "w.xyz", water_rows(n_pairs=4))
     assert _error(capsys, ["ir", str(model_file), str(path), "--relax", "none"],
                   code=130) == "emlp ir: interrupted"
