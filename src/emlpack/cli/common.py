@@ -24,7 +24,7 @@ import numpy as np
 from emlpack.errors import InputError, MissingDependencyError, ModelFileError
 
 if TYPE_CHECKING:
-    from collections.abc import Collection, Sequence
+    from collections.abc import Collection, Iterable, Sequence
 
     from ase import Atoms
 
@@ -83,9 +83,21 @@ class Log:
         print(text, flush=True)
 
     def progress(self, text: str) -> None:
-        """Print a progress line to stderr, unless ``quiet``."""
+        """Print a progress line to stderr, unless ``quiet`` (above a progress bar, without
+        breaking it: :func:`emlpack.progress.write`)."""
         if not self.quiet:
-            print(text, file=sys.stderr, flush=True)
+            from emlpack.progress import write
+
+            write(text, file=sys.stderr)
+
+    def bar(self, iterable: Iterable, desc: str, unit: str, total: int | None = None
+            ) -> Iterable:
+        """``iterable`` with a progress bar on stderr (:func:`emlpack.progress.progress`:
+        rate and time left on a terminal, plain lines otherwise), none when ``quiet``."""
+        from emlpack.progress import progress
+
+        return progress(iterable, total=total, desc=desc, unit=unit, enabled=not self.quiet,
+                        file=sys.stderr)
 
 
 # --------------------------------------------------------------------------- arguments
@@ -143,8 +155,8 @@ def add_threads_argument(p: argparse.ArgumentParser, default: int | None = None)
 
 
 def add_quiet_argument(p: argparse.ArgumentParser) -> None:
-    """The ``--quiet`` option (no progress messages)."""
-    p.add_argument("--quiet", action="store_true", help="no progress messages")
+    """The ``--quiet`` option (no progress messages, no progress bar)."""
+    p.add_argument("--quiet", action="store_true", help="no progress messages or bar")
 
 
 def set_threads(n: int | None) -> None:
