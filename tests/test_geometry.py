@@ -216,3 +216,24 @@ def test_cosine_cutoff_is_one_formula_for_numpy_and_torch():
     np.testing.assert_allclose(f[(r > 3.5) & (r < 4.0)],
                                0.5 * (1 + np.cos(np.pi * (r[(r > 3.5) & (r < 4.0)] - 3.5) / 0.5)))
     np.testing.assert_array_equal(torch_cutoff(torch.tensor(r), 4.0, 0.5).numpy(), f)
+
+
+def test_rotations_that_leave_the_cores_in_place():
+    """None for a bent molecule, the axial one for a linear molecule (moving the other
+    particles about the axis, to first order), all three about a single core."""
+    from emlpack.geometry import core_fixed_rotations
+
+    rng = np.random.default_rng(3)
+    others = rng.normal(size=(5, 3))
+    line = np.array([[0.0, 0.0, -1.2], [0.0, 0.0, 0.1], [0.0, 0.0, 1.3]])
+    assert core_fixed_rotations(line + [[0.1, 0, 0], [0, 0, 0], [0, 0, 0]], others).shape == (
+        15, 0)
+    (axial,) = core_fixed_rotations(line, others).T
+    centre = line.mean(axis=0)
+    expected = np.cross([0.0, 0.0, 1.0], others - centre).ravel()
+    assert abs(abs(axial @ expected) - np.linalg.norm(expected)) < 1e-12
+    assert core_fixed_rotations(line[:1], others).shape == (15, 3)
+    # nearly linear: within the tolerance given
+    bent = line + [[1e-5, 0, 0], [0, 0, 0], [0, 0, 0]]
+    assert core_fixed_rotations(bent, others).shape[1] == 0
+    assert core_fixed_rotations(bent, others, rtol=1e-3).shape[1] == 1

@@ -45,6 +45,7 @@ import yaml
 
 from emlpack.data.store import DatasetStore
 from emlpack.io.extxyz import read_structures
+from emlpack.progress import progress
 from emlpack.properties.fd_reference import (
     CrystalReferenceError,
     FDSettings,
@@ -301,7 +302,10 @@ def stage_label(study: Study, until: dt.datetime | None = None,
         pending = [t for k, t in enumerate(todo) if t.key not in done and k % n_shards == index]
         study.log(f"label: {len(todo)} tasks, {len(done)} done, {len(pending)} to go in shard"
                   f" {index}/{n_shards} ({study.level()})")
-        for t in pending:
+        # a bar on stderr: rate and time left on a terminal, a line every tenth otherwise
+        bar = progress(pending, desc="label", unit="calc",
+                       enabled=bool(study.cfg.get("progress", True)))
+        for t in bar:
             if until is not None and dt.datetime.now(dt.timezone.utc) >= until:
                 study.log(f"label: stopping at {until:%H:%M} UTC")
                 break
@@ -326,6 +330,7 @@ def stage_label(study: Study, until: dt.datetime | None = None,
             study.log(f"label: {t.key} done in {wall:.1f} s")
             if study.on_stored is not None:
                 study.on_stored(store)
+        bar.close()
         n_total = len(store)
     return {"new": n_new, "failed": n_fail, "stored": n_total}
 
@@ -714,9 +719,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--until", help="label: start no calculation after HH:MM (UTC)")
     p.add_argument("--shard", default="0/1",
                    help="label: I/N = every N-th task from I, own store (parallel workers)")
+    p.add_argument("--quiet", action="store_true", help="label: no progress bar")
     args = p.parse_args(argv)
     stages = [s for s in args.stages if "=" not in s]
-    overrides = [s for s in args.stages if "=" in s]
+    overrides = [s for s in args.stages if "=" in s] + (["progress=false"] if args.quiet else [])
     until = None
     if args.until:
         hh, mm = (int(x) for x in args.until.split(":"))

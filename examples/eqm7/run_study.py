@@ -42,7 +42,10 @@ Usage (from the project root)::
     python examples/eqm7/run_study.py dft dft.level=quick workdir=/tmp/eqm7
 
 ``key=value`` arguments override the YAML config (dots for nesting, values parsed as YAML;
-``train.KEY=VALUE`` entries are passed to the training config, see config.yaml).
+``train.KEY=VALUE`` entries are passed to the training config, see config.yaml). Each stage
+shows a progress bar over its units of work (models, DFT parts) on stderr: rate and time left
+on a terminal, a plain line every tenth of the work otherwise (:mod:`emlpack.progress`);
+``--quiet`` (or ``progress=false``) shows none.
 """
 
 from __future__ import annotations
@@ -144,6 +147,15 @@ class Study:
         self.log = log
         self.work: Counter = Counter()
         self._shards = None
+
+    def progress(self, items, stage: str, unit: str):
+        """``items`` with a progress bar on stderr (:func:`emlpack.progress.progress`: rate
+        and time left on a terminal, a plain line every tenth otherwise; none with the
+        config's ``progress: false``, ``--quiet``)."""
+        from emlpack.progress import progress
+
+        return progress(list(items), desc=stage, unit=unit,
+                        enabled=bool(self.cfg.get("progress", True)))
 
     @property
     def dft_dir(self) -> Path:
@@ -339,51 +351,51 @@ def stage_train(study: Study) -> list[Path]:
     n_data = len(study.shards().structures)
     schedule = step_schedule(t, len(split["train"]))
     paths = []
-    for group, augmented in study.groups().items():
-        for seed in study.cfg["seeds"]:
-            run = study.model_dir(group, seed)
-            done = run / "done.json"
-            if done.exists():
-                study.log(f"train: {group} seed {seed} done ({run}), skipped")
-                trained_on = (_read_json(done) or {}).get("n_configurations")
-                if trained_on is not None and trained_on != n_data:
-                    study.log(f"train: WARNING {run} was trained on {trained_on}"
-                              f" configurations, the data set now has {n_data}: use a new"
-                              " workdir (or delete the models) to train on the new data")
-                paths.append(run / "best.pt")
-                continue
-            if not len(split["train"]) or not len(split["val"]):
-                raise SystemExit(
-                    f"train: {study.data} has {len(split['train'])} training and"
-                    f" {len(split['val'])} validation configurations; both are needed (the"
-                    " validation molecules select the best epoch)")
-            overrides = [f"data.path={study.data}", f"output.dir={run}",
-                         f"augmentation.enabled={str(augmented).lower()}",
-                         f"training.seed={seed}", "output.progress=false",
-                         *schedule, *model_overrides(t, group, seed)]
-            if t.get("snapshots"):  # trainings longer than a session: committed snapshots
-                overrides += [f"output.snapshot_dir={Path(t['snapshots']) / group / f'seed{seed}'}",
-                              "output.snapshot_commit=true"]
-            cfg = load_train_config(_resolve(t.get("config", "train.yaml")), overrides)
-            t0 = time.perf_counter()
-            best = train(cfg)  # resumes from last.pt when a previous run was cut off
-            study.work["train"] += 1
-            if not Path(best).exists():
-                raise SystemExit(f"train: {run}: no best.pt after training (no finite"
-                                 " validation loss); see its log.csv")
-            rows = list(csv.DictReader((run / "log.csv").open())) if (run / "log.csv").exists() \
-                else []
-            best_row = min(rows, key=lambda r: float(r["val_loss"])) if rows else {}
-            _write_json(done, {"best": str(best), "epochs": len(rows),
-                               "n_configurations": n_data,
-                               "n_train": int(len(split["train"])),
-                               "n_val": int(len(split["val"])),
-                               "wall_s_this_call": time.perf_counter() - t0,
-                               "best_epoch": best_row.get("epoch"),
-                               "best_val": {k: float(v) for k, v in best_row.items()
-                                            if k.startswith("val_") and v not in ("", None)}})
-            study.log(f"train: {group} seed {seed} -> {best}")
-            paths.append(best)
+    runs = [(g, a, seed) for g, a in study.groups().items() for seed in study.cfg["seeds"]]
+    for group, augmented, seed in study.progress(runs, "train", "model"):
+        run = study.model_dir(group, seed)
+        done = run / "done.json"
+        if done.exists():
+            study.log(f"train: {group} seed {seed} done ({run}), skipped")
+            trained_on = (_read_json(done) or {}).get("n_configurations")
+            if trained_on is not None and trained_on != n_data:
+                study.log(f"train: WARNING {run} was trained on {trained_on}"
+                          f" configurations, the data set now has {n_data}: use a new"
+                          " workdir (or delete the models) to train on the new data")
+            paths.append(run / "best.pt")
+            continue
+        if not len(split["train"]) or not len(split["val"]):
+            raise SystemExit(
+                f"train: {study.data} has {len(split['train'])} training and"
+                f" {len(split['val'])} validation configurations; both are needed (the"
+                " validation molecules select the best epoch)")
+        overrides = [f"data.path={study.data}", f"output.dir={run}",
+                     f"augmentation.enabled={str(augmented).lower()}",
+                     f"training.seed={seed}", "output.progress=false",
+                     *schedule, *model_overrides(t, group, seed)]
+        if t.get("snapshots"):  # trainings longer than a session: committed snapshots
+            overrides += [f"output.snapshot_dir={Path(t['snapshots']) / group / f'seed{seed}'}",
+                          "output.snapshot_commit=true"]
+        cfg = load_train_config(_resolve(t.get("config", "train.yaml")), overrides)
+        t0 = time.perf_counter()
+        best = train(cfg)  # resumes from last.pt when a previous run was cut off
+        study.work["train"] += 1
+        if not Path(best).exists():
+            raise SystemExit(f"train: {run}: no best.pt after training (no finite"
+                             " validation loss); see its log.csv")
+        rows = list(csv.DictReader((run / "log.csv").open())) if (run / "log.csv").exists() \
+            else []
+        best_row = min(rows, key=lambda r: float(r["val_loss"])) if rows else {}
+        _write_json(done, {"best": str(best), "epochs": len(rows),
+                           "n_configurations": n_data,
+                           "n_train": int(len(split["train"])),
+                           "n_val": int(len(split["val"])),
+                           "wall_s_this_call": time.perf_counter() - t0,
+                           "best_epoch": best_row.get("epoch"),
+                           "best_val": {k: float(v) for k, v in best_row.items()
+                                        if k.startswith("val_") and v not in ("", None)}})
+        study.log(f"train: {group} seed {seed} -> {best}")
+        paths.append(best)
     return paths
 
 
@@ -417,24 +429,25 @@ def stage_evaluate(study: Study) -> dict:
     for set_name, structures in sets.items():
         if not structures:
             study.log(f"evaluate: no {set_name} structures yet, skipped")
+    todo = [(set_name, structures, m) for set_name, structures in sets.items() if structures
+            for m in models]
+    for set_name, structures, (group, name, path) in study.progress(todo, "evaluate", "model"):
+        target = study.workdir / "eval" / set_name / f"{name}.json"
+        if target.exists():
+            study.log(f"evaluate: {set_name}/{name} exists, skipped")
             continue
-        for group, name, path in models:
-            target = study.workdir / "eval" / set_name / f"{name}.json"
-            if target.exists():
-                study.log(f"evaluate: {set_name}/{name} exists, skipped")
-                continue
-            model, reference, _ = _load(path)
-            t0 = time.perf_counter()
-            metrics, _ = evaluate(model, reference, structures,
-                                  dynamic=bool(e.get("dynamic", True)))
-            metrics.update(model=str(path), group=group, name=name, set=set_name,
-                           wall_s=time.perf_counter() - t0)
-            metrics.get("dynamic", {}).pop("structures", None)  # per-structure records: large
-            _write_json(target, metrics)
-            study.work["evaluate"] += 1
-            out[(set_name, name)] = metrics
-            study.log(f"evaluate: {set_name}/{name}: static F MAE"
-                      f" {1000 * metrics['static']['forces']['mae']:.1f} meV/Å")
+        model, reference, _ = _load(path)
+        t0 = time.perf_counter()
+        metrics, _ = evaluate(model, reference, structures,
+                              dynamic=bool(e.get("dynamic", True)))
+        metrics.update(model=str(path), group=group, name=name, set=set_name,
+                       wall_s=time.perf_counter() - t0)
+        metrics.get("dynamic", {}).pop("structures", None)  # per-structure records: large
+        _write_json(target, metrics)
+        study.work["evaluate"] += 1
+        out[(set_name, name)] = metrics
+        study.log(f"evaluate: {set_name}/{name}: static F MAE"
+                  f" {1000 * metrics['static']['forces']['mae']:.1f} meV/Å")
     return out
 
 
@@ -708,7 +721,7 @@ def stage_dft(study: Study) -> dict:
 
     plan = dft_plan(study.test_molecules(), figure, study.second_set_molecules(),
                     ir_cost=lambda name: reference_cost(study.dft_dir, name))
-    for row, part in plan:
+    for row, part in study.progress(plan, "dft", "part"):
         name = row["name"]
         target = study.dft_dir / (f"{name}.json" if part == "static" else f"{name}.ir.json")
         failed = study.dft_dir / f"{name}.failed.json"
@@ -785,7 +798,7 @@ def _at_dft_optima(study: Study, stage: str, row: Callable[[object, object], dic
         study.log(f"{stage}: no DFT reference of the {set_name} molecules yet (run the dft"
                   " stage), skipped")
         return
-    for group, name, path in study.require_models():
+    for group, name, path in study.progress(study.require_models(), stage, "model"):
         target = stage_file(study, stage, name, set_name)
         if target.exists() and set(_read_json(target)["molecules"]) >= set(refs):
             study.log(f"{stage}: {set_name}/{name} exists, skipped")
@@ -1134,7 +1147,7 @@ def stage_md(study: Study) -> None:
     dt_fs = float(c.get("dt_fs", 0.5))
     steps = int(round(float(c.get("time_fs", 500.0)) / dt_fs))
     discard = int(c.get("discard_steps", 10))
-    for group, name, path in study.require_models():
+    for group, name, path in study.progress(study.require_models(), "md", "model"):
         model = None
         for row in study.test_molecules():
             run = study.workdir / "md" / name / row["name"]
@@ -2093,9 +2106,12 @@ def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("stages", nargs="+", help=f"{', '.join(STAGES)} or all; key=value overrides")
     p.add_argument("--config", default=str(HERE / "config.yaml"))
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress bars (a stage's bar: rate and time left on a terminal, a"
+                   " plain line every tenth of its work otherwise)")
     args = p.parse_args(argv)
     stages = [s for s in args.stages if "=" not in s]
-    overrides = [s for s in args.stages if "=" in s]
+    overrides = [s for s in args.stages if "=" in s] + (["progress=false"] if args.quiet else [])
     run(stages, load_config(args.config, overrides),
         log=lambda m: print(f"[{dt.datetime.now(dt.timezone.utc):%H:%M:%S}] {m}", flush=True))
 

@@ -9,8 +9,8 @@ the command line prints it without a traceback. Each area keeps its own subclass
 
 from __future__ import annotations
 
-__all__ = ["EmlpackError", "InputError", "MissingDependencyError", "MissingFileError",
-           "ModelFileError"]
+__all__ = ["BrokenResultError", "EmlpackError", "InputError", "MissingDependencyError",
+           "MissingFileError", "ModelFileError"]
 
 
 class EmlpackError(Exception):
@@ -32,3 +32,9 @@ class MissingFileError(EmlpackError, FileNotFoundError):
 class MissingDependencyError(EmlpackError, ImportError):
     """An optional package that a feature needs is not installed (the message names the pip
     extra that provides it; raised by :func:`emlpack.optional.import_optional`)."""
+
+
+class BrokenResultError(EmlpackError, RuntimeError):
+    """A computation whose result cannot be reported: too few ensemble members (or the single
+    model) reached a sound result (e.g. pairs not at a minimum). Not a user error: ``emlp``
+    prints the message as one line and exits 3, writing no values."""

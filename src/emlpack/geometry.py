@@ -195,6 +195,30 @@ def rigid_body_modes(positions: ArrayLike, masses: ArrayLike | None = None,
     return u[:, s > rtol * s.max()]
 
 
+def core_fixed_rotations(cores: ArrayLike, particles: ArrayLike,
+                         rtol: float = 1e-6) -> np.ndarray:
+    """Orthonormal columns (3P) spanning the rigid rotations of a molecule that leave its
+    ``cores`` (Nc, 3) in place, as displacements of its other ``particles`` (P, 3; Å): none for
+    three or more cores off one line, the rotation about the axis of a linear molecule, all
+    three for a single core. At fixed cores they are symmetries of the energy, so zero modes
+    of the particles' Hessian. A core axis counts as a line when the cores' rotation about it
+    is below ``rtol`` times their largest one (as :func:`rigid_body_modes`)."""
+    cores = np.asarray(cores, dtype=float).reshape(-1, 3)
+    particles = np.asarray(particles, dtype=float).reshape(-1, 3)
+    centre = cores.mean(axis=0)
+    rc = cores - centre
+    moves = np.array([np.cross(axis, rc).ravel() for axis in np.eye(3)]).T  # [3Nc, 3 axes]
+    _, s, vt = np.linalg.svd(moves, full_matrices=True)
+    scale = float(np.linalg.norm(rc))
+    axes = vt[s <= rtol * scale] if scale > 0 else np.eye(3)
+    if not len(axes) or not len(particles):
+        return np.zeros((3 * len(particles), 0))
+    rp = particles - centre
+    vecs = np.array([np.cross(axis, rp).ravel() for axis in axes]).T  # [3P, k]
+    u, sv, _ = np.linalg.svd(vecs, full_matrices=False)
+    return u[:, sv > rtol * max(float(np.linalg.norm(rp)), 1e-300)]
+
+
 def internal_basis(rigid: np.ndarray) -> np.ndarray:
     """Orthonormal basis (columns) of the complement of the columns of ``rigid``."""
     return scipy.linalg.null_space(np.asarray(rigid).T)

@@ -20,7 +20,7 @@ from emlpack.calculators.ensemble import (
     load_pretrained,
 )
 from emlpack.data.references import HydrideReference, hydride_coefficients, load_hydrides
-from emlpack.io import read_structures, structure_to_atoms
+from emlpack.io import read_structures, structure_to_atoms, write_structures
 from emlpack.nn.checkpoint import save_model
 from emlpack.pairs.relax import RelaxOptions
 from emlpack.pairs.solvers import BatchedSolver
@@ -65,6 +65,12 @@ def checkpoints(tmp_path_factory, models, hydrides):
 def _ethanol():
     s = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), index=400)[0]
     return s
+
+
+def _sound_c3h6():
+    """A C3H6 frame whose pairs both test models relax to a minimum (on ethanol they merge
+    pairs, and a command then reports no result)."""
+    return read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), index=525)[0]
 
 
 def test_hydrides_are_their_dft_energies_on_the_dft_scale(checkpoints, hydrides):
@@ -188,6 +194,37 @@ def test_a_failed_member_raises_or_is_dropped_for_the_molecule(models):
         EMLPCalculator(models[0], failed_members="ignore")
 
 
+class _SaddleSolver:
+    """A pair solver that relaxes as usual but reports a negative smallest pair curvature
+    (a saddle) without calling it a failure, as a solver that does not judge one would."""
+
+    def relax(self, model, structure):
+        return replace(BatchedSolver(RelaxOptions(fmax=1e-6)).relax(model, structure),
+                       min_curvature=-0.5, reason="")
+
+    def reset(self):
+        pass
+
+
+def test_a_member_whose_pairs_are_not_at_a_minimum_is_a_failed_member(models):
+    """The calculator reads the curvature itself: a member at a saddle is left out (drop) or
+    raises, like a failed relaxation, even when its solver reports no failure."""
+    methane = structure_to_atoms(read_structures(shared_path("data/eqm7_pbe0_subset.xyz"),
+                                                 index=63)[0])
+    options = RelaxOptions(fmax=1e-6)
+    methane.calc = EMLPCalculator(models[0], relax_options=options)
+    alone = methane.get_potential_energy()
+    calc = EMLPCalculator(list(models), relax_options=options, failed_members="drop")
+    calc.pair_solvers[1] = _SaddleSolver()
+    methane.calc = calc
+    assert methane.get_potential_energy() == pytest.approx(alone, abs=1e-9)
+    assert list(calc.dropped) == [1] and "negative pair curvature -0.5" in calc.dropped[1]
+    methane.calc = EMLPCalculator(list(models), relax_options=options)
+    methane.calc.pair_solvers[1] = _SaddleSolver()
+    with pytest.raises(CalculationFailed, match="negative pair curvature -0.5 eV/Å"):
+        methane.get_potential_energy()
+
+
 def test_callers_model_is_not_converted(models):
     m32 = copy.deepcopy(models[0]).float()
     EMLPCalculator(m32, relax_pairs=False, dtype=torch.float64)
@@ -304,9 +341,8 @@ def test_a_models_notice_is_in_every_result_and_logged_once(checkpoints, tmp_pat
             assert notice in atoms.calc.warnings
     assert sum(notice in r.getMessage() for r in caplog.records) == 1
     out = tmp_path / "pol.json"
-    xyz = tmp_path / "ethanol.xyz"
-    atoms.calc = None
-    atoms.write(xyz)
+    xyz = tmp_path / "c3h6.xyz"  # a molecule whose pairs both members relax to a minimum
+    write_structures(xyz, _sound_c3h6())
     assert main(["polarizability", str(root / "toy"), str(xyz), "-o", str(out), "--quiet"]) == 0
     assert notice in json.loads(out.read_text())["warnings"]
 
@@ -336,10 +372,8 @@ def test_a_molecule_larger_than_the_training_molecules_is_warned_once(checkpoint
 
     from emlpack.cli import main
 
-    xyz, out = tmp_path / "ethanol.xyz", tmp_path / "pol.json"
-    plain = atoms.copy()
-    plain.calc = None
-    plain.write(xyz)
+    xyz, out = tmp_path / "c3h6.xyz", tmp_path / "pol.json"
+    write_structures(xyz, _sound_c3h6())  # 3 heavy atoms, relaxed by both members
     assert main(["polarizability", str(root / "small"), str(xyz), "-o", str(out),
                  "--quiet"]) == 0
     assert any("3 heavy atoms" in w for w in json.loads(out.read_text())["warnings"])

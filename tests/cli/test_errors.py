@@ -121,6 +121,40 @@ def test_element_unknown_to_the_model_is_refused_before_the_pair_guess(
                     " supported by the model (trained for H, C, N, O)")
 
 
+def test_a_pair_far_from_every_core_is_refused_naming_the_particle(model_file, tmp_path,
+                                                                    capsys):
+    """A pair at 1e6 Å (once a SIGFPE inside vesin, exit 136): one line naming file, frame,
+    the particle row and the model's cutoff."""
+    rows = water_rows(4)
+    rows[4] = ("Es", 1e6, 0.0, 0.0)
+    path = write_xyz(tmp_path / "far.xyz", rows)
+    line = _error(capsys, ["polarizability", str(model_file), str(path)])
+    assert line == (f"emlp polarizability: error: {path}, frame 0: electron pair at particle"
+                    " row 4 (Es at (1e+06, 0, 0) Å) is 1e+06 Å from the nearest core, farther"
+                    " than the model's cutoff 4 Å from every core")
+
+
+def test_a_core_far_away_is_refused_as_too_large_for_the_neighbour_list(model_file, tmp_path,
+                                                                         capsys):
+    rows = water_rows(0)
+    rows[0] = ("O", 0.0, 1e6, 0.0)  # the pairs are guessed: refused before the guess
+    path = write_xyz(tmp_path / "farcore.xyz", rows)
+    line = _error(capsys, ["polarizability", str(model_file), str(path)])
+    assert line.startswith(f"emlp polarizability: error: {path}, frame 0: the bounding box of"
+                           " the particles (1.529 x 1.01e+06 x 1.01 Å) holds 2.52e+05 cells")
+    assert line.endswith("particle row 0 (O at (0, 1e+06, 0) Å) is the farthest from the"
+                         " others")
+
+
+def test_a_two_component_field_in_the_file_is_one_line(model_file, tmp_path, capsys):
+    """``efield="1 2"`` was a ValueError traceback (exit 1)."""
+    path = write_xyz(tmp_path / "e.xyz", water_rows(4),
+                     comment='Properties=species:S:1:pos:R:3 pbc="F F F" efield="1 2"')
+    line = _error(capsys, ["polarizability", str(model_file), str(path)])
+    assert line == (f"emlp polarizability: error: {path}, frame 0: 'efield' must have 3"
+                    " components, got 2: '1 2'")
+
+
 def test_response_on_a_molecule_is_refused_before_any_work(model_file, tmp_path, capsys):
     path = write_xyz(tmp_path / "w.xyz", water_rows(n_pairs=0))  # pairs would need a guess
     t0 = time.perf_counter()
@@ -143,8 +177,7 @@ def test_free_text_comment_containing_energy_is_accepted(model_file, tmp_path, c
     path = write_xyz(tmp_path / "free.xyz", water_rows(n_pairs=4),
                      comment="water, energy minimised; charge unknown")
     out = tmp_path / "pol.json"
-    assert main(["polarizability", str(model_file), str(path), "--relax", "none",
-                 "-o", str(out), "--quiet"]) == 0
+    assert main(["polarizability", str(model_file), str(path), "-o", str(out), "--quiet"]) == 0
     data = json.loads(out.read_text())
     assert data["structure"] == f"{path}, frame 0"
     from emlpack.io import read_structures
@@ -296,12 +329,12 @@ def test_sigint_during_md_exits_130_with_a_resume_hint(model_file, tmp_path, cap
 
 
 def test_sigint_in_a_command_that_does_not_resume(model_file, tmp_path, capsys, monkeypatch):
-    import emlpack.properties.ir
+    import emlpack.properties.hessian
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(emlpack.properties.ir, "ir_spectrum", interrupted)
+    monkeypatch.setattr(emlpack.properties.hessian, "extended_hessian", interrupted)
     path = write_xyz(tmp_path / "w.xyz", water_rows(n_pairs=4))
     assert _error(capsys, ["ir", str(model_file), str(path), "--relax", "none"],
                   code=130) == "emlp ir: interrupted"

@@ -4,6 +4,7 @@ energies on the DFT scale; ensembles and pretrained names give one clear line.""
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -137,17 +138,24 @@ def test_property_commands_report_the_ensemble_mean_and_spread(ensemble_folder, 
 
 
 def test_a_member_with_a_broken_structure_is_left_out_of_the_results(ensemble_folder, tmp_path,
-                                                                     monkeypatch):
+                                                                     monkeypatch, capsys):
     """A member whose relaxation leaves a broken structure (here its pair relaxation is made
     to report a failure) is left out of the mean and spread, named in a warning and in
-    ``ensemble.left_out``: the values are the sound member's own."""
+    ``ensemble.left_out``: with three members the values are the two sound members' mean;
+    with two, one sound member is no ensemble result: exit 3, one line, nothing written."""
     from emlpack.cli import main, properties
 
     water = write_xyz(tmp_path / "w.xyz", water_rows(4))
     members = sorted(ensemble_folder.glob("*.pt"))
-    alone = tmp_path / "alone.json"
-    assert main(["polarizability", str(members[0]), str(water), "-o", str(alone),
-                 "--quiet"]) == 0
+    three = tmp_path / "three"
+    three.mkdir()
+    for k, member in enumerate([members[0], members[1], members[1]]):
+        (three / f"m{k}.pt").write_bytes(member.read_bytes())
+    alone = []
+    for k, member in enumerate(members):
+        out = tmp_path / f"alone{k}.json"
+        assert main(["polarizability", str(member), str(water), "-o", str(out), "--quiet"]) == 0
+        alone.append(json.loads(out.read_text())["polarizability_isotropic_bohr3"])
     real, calls = properties.relax, []
 
     def relax(model, s, level, args, log, warnings):
@@ -160,14 +168,21 @@ def test_a_member_with_a_broken_structure_is_left_out_of_the_results(ensemble_fo
 
     monkeypatch.setattr(properties, "relax", relax)
     out = tmp_path / "ensemble.json"
-    assert main(["polarizability", str(ensemble_folder), str(water), "-o", str(out),
-                 "--quiet"]) == 0
-    data, single = json.loads(out.read_text()), json.loads(alone.read_text())
-    assert [p.rsplit("/", 1)[-1] for p in data["ensemble"]["left_out"]] == [members[1].name]
-    assert data["ensemble"]["size"] == 1
+    assert main(["polarizability", str(three), str(water), "-o", str(out), "--quiet"]) == 0
+    data = json.loads(out.read_text())
+    assert [p.rsplit("/", 1)[-1] for p in data["ensemble"]["left_out"]] == ["m1.pt"]
+    assert data["ensemble"]["size"] == 2
     assert any(w.startswith("model 2 left out of the results") for w in data["warnings"])
-    assert data["polarizability_isotropic_bohr3"] == pytest.approx(
-        single["polarizability_isotropic_bohr3"], rel=1e-10)
+    assert data["polarizability_isotropic_bohr3"] == pytest.approx(np.mean(alone), rel=1e-10)
+
+    calls.clear()
+    capsys.readouterr()
+    out = tmp_path / "two.json"
+    assert main(["polarizability", str(ensemble_folder), str(water), "-o", str(out),
+                 "--quiet"]) == 3
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and "1 of 2 models sound, at least 2 needed (model 2: pair" in err[0]
+    assert not out.exists()
 
 
 def test_pretrained_lists_the_names_and_shows_a_card_with_its_thresholds(
@@ -198,3 +213,63 @@ def test_pretrained_lists_the_names_and_shows_a_card_with_its_thresholds(
     assert main(["pretrained", "other"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not an installed pretrained name" in err[0]
+
+
+def test_md_writes_energies_on_the_dft_scale(tmp_path):
+    """A checkpoint with DFT hydride references: the trajectory's, the log's and the summary's
+    energies are on the DFT scale (the model's energy plus a constant of the composition), as
+    the property commands report them; stderr (not a terminal) gets plain progress lines."""
+    from emlpack.calculators.ensemble import load_member
+
+    folder = tmp_path / "m"
+    folder.mkdir()
+    ref = HydrideReference(*load_hydrides(shared_path("data/hydrides"))).to_metadata()
+    path = save_model(load_model(save_test_model(folder, seed=4)), folder / "ref.pt",
+                      {"reference": ref, "elements": [1, 6, 7, 8]})
+    water = write_xyz(tmp_path / "w.xyz", water_rows(4))
+    out = tmp_path / "run"
+    rc, _, err = run(["md", str(path), str(water), "--steps", "4", "--dt", "0.25", "--nve",
+                      "--temperature", "100", "-o", str(out)])
+    assert rc == 0, err
+    assert "md: 4/4 (100%)" in err and "step/s" in err  # the progress line at the end
+    member = load_member(path)
+    frames = read_structures(out / "trajectory.xyz")
+    shift = member.dft_shift(frames[0].numbers)
+    assert abs(shift) > 100  # water: the DFT scale is far from the model's
+    for f in frames:
+        model_energy = member.model.evaluate(f)["energy"]
+        assert f.info["potential_energy"] == pytest.approx(model_energy + shift, abs=1e-5)
+        assert f.energy == pytest.approx(f.info["potential_energy"], abs=1e-9)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["energy_scale"] == "dft"
+    assert summary["energy_eV"] == pytest.approx(frames[-1].info["potential_energy"], abs=1e-9)
+    assert summary["model_energy_eV"] == pytest.approx(summary["energy_eV"] - shift, abs=1e-9)
+    assert summary["final_conserved_energy_eV"] == pytest.approx(
+        frames[-1].info["conserved_energy"], abs=1e-9)
+    assert "energies on the DFT scale" in (out / "md.log").read_text()
+    # a run of this model started on the model's scale (before the DFT scale) is not mixed in
+    ckpt = out / "checkpoint.npz"
+    with np.load(ckpt) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(str(arrays["meta"]))
+    meta["signature"].pop("energy_scale")
+    arrays["meta"] = np.array(json.dumps(meta))
+    np.savez(ckpt, **arrays)
+    rc, _, err = run(["md", str(path), str(water), "--steps", "6", "--dt", "0.25", "--nve",
+                      "--temperature", "100", "-o", str(out), "--quiet"])
+    assert rc == 2 and "differs in ['energy_scale']" in err
+
+
+def test_an_ensemble_shows_its_progress_per_member_unless_quiet(ensemble_folder, tmp_path):
+    """Not a terminal (the captured stderr): plain progress lines over the members, with the
+    count, rate and time left; ``--quiet``: none."""
+    water = write_xyz(tmp_path / "w.xyz", water_rows(4))
+    out = tmp_path / "pol.json"
+    rc, _, err = run(["polarizability", str(ensemble_folder), str(water), "-o", str(out)])
+    assert rc == 0, err
+    assert re.search(r"^polarizability: models relaxed: 2/2 \(100%\) .* left,"
+                     r" .*(model/s|s/model)$", err, re.M), err
+    assert re.search(r"^extended Hessians: 2/2 \(100%\)", err, re.M), err
+    rc, _, err = run(["polarizability", str(ensemble_folder), str(water), "-o", str(out),
+                      "--quiet"])
+    assert rc == 0 and err == ""

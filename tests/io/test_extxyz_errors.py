@@ -191,3 +191,42 @@ def test_bad_arguments(tmp_path):
     with pytest.raises(ExtxyzError, match="frame 3 requested but the file has 1 frames"):
         read_structures(path, index=3)
     assert read_structures(path, index="1:") == []
+
+
+@pytest.mark.parametrize(("key_value", "expected"), [
+    ('efield="0.001 0.002"', "'efield' must have 3 components, got 2"),
+    ('field="1 2"', "'field' must have 3 components, got 2"),
+    ('external_field="0.1 0.2"', "'external_field' must have 3 components, got 2"),
+    ('dipole="1 2"', "'dipole' must have 3 components, got 2"),
+    ('dipole=x', "'dipole' must be 3 numbers"),
+    ('Lattice="10 0 0 0 10 0" pbc="T T T"', "'Lattice' must be 9 numbers (the three cell"
+     " vectors, Å), got 6: '10 0 0 0 10 0'"),
+    ('stress="1 2 3 4 5 6"', "'stress' must be 9 numbers (a 3x3 matrix, eV/Å^3), got 6"),
+    ('pbc="T T"', "'pbc' must be 3 flags T or F, got 2: 'T T'"),
+    ('pbc="T T X"', "'pbc' must be 3 flags T or F, got 3: 'T T X'"),
+])
+def test_every_shaped_key_of_the_wrong_shape_is_one_line_naming_key_and_shape(
+        tmp_path, key_value, expected):
+    """Each vector or matrix key the reader takes, with another number of values, is refused
+    with one line naming the key and the shape it needs (not ASE's or numpy's message)."""
+    text = frame_text(methane_rows(), comment=f"{PROPS} energy=-1100.5 {key_value}")
+    err = check(write_file(tmp_path, text), expected)
+    assert "\n" not in str(err)
+
+
+def test_raw_frames_are_checked_too(tmp_path):
+    """The commands read a raw frame (``read_frame_atoms``) and its field
+    (``frame_field``, V/Å) before the structure: the same one-line errors there."""
+    from emlpack.io.extxyz import frame_field, read_frame_atoms
+    from emlpack.units import FIELD_AU_IN_V_PER_A
+
+    path = tmp_path / "one.xyz"
+    path.write_text(frame_text(methane_rows(), comment=f'{PROPS} efield="0.001 0.002"'))
+    with pytest.raises(ExtxyzError, match=r"one.xyz, frame 0: 'efield' must have 3 components"):
+        read_frame_atoms(path, 0)
+    path.write_text(frame_text(methane_rows()))
+    atoms = read_frame_atoms(path, 0)
+    np.testing.assert_allclose(frame_field(atoms, "x"),
+                               np.array([0.001, 0.0, -0.002]) * FIELD_AU_IN_V_PER_A)
+    atoms.info.pop("efield")
+    assert frame_field(atoms, "x") is None

@@ -207,3 +207,46 @@ def test_pair_polarizability_of_every_family_matches_finite_fields(family):
     assert np.abs(alpha).max() > 0.1
     np.testing.assert_allclose(alpha, fd, rtol=1e-5, atol=1e-6 * np.abs(alpha).max())
     np.testing.assert_allclose(alpha, alpha.T, atol=1e-10 * np.abs(alpha).max())
+
+
+#: hexatriyne at its PBE0/def2-SVP optimum (PySCF, ASE BFGS to 0.01 eV/Å): exactly linear, Å
+HEXATRIYNE_Z = [-4.27007141, -3.19531633, -1.97686763, -0.61293370, 0.61293370, 1.97686763,
+                3.19531633, 4.27007141]
+
+
+def test_a_linear_molecules_pair_rotation_about_its_axis_is_projected_out():
+    """At fixed cores on a line, turning every pair about the axis is a symmetry: a zero mode
+    of the relaxed pair Hessian. Where the pairs break the cylindrical symmetry (a
+    perpendicular dipole) it couples to the field, and the plain inverse turns it into noise
+    (here ~100x the polarizability along one axis). The clamped polarizability relaxes the
+    pairs in every other direction: the limit of an ever stiffer spring on the rotation, a
+    positive tensor, with the same response to a field along the axis."""
+    from ase import Atoms
+
+    from emlpack.calculators.ensemble import load_pretrained
+    from emlpack.geometry import core_fixed_rotations, schur_complement
+    from emlpack.pairs.guess import guess_pairs
+    from emlpack.properties.response import pair_minimum_problem
+    from emlpack.structure import Structure
+
+    atoms = Atoms("HC6H", positions=[[0.0, 0.0, z] for z in HEXATRIYNE_Z])
+    model = load_pretrained("mini-eqm7").members[1].model
+    s = Structure(atoms.numbers, atoms.positions, guess_pairs(atoms, "auto"))
+    r = relax_pairs(model, s, fmax=1e-6)[0]
+    assert not r.failed, r.reason
+    s = s.copy(pairs=r.pairs)
+    h = extended_hessian(model, s)[1].numpy()
+    n = s.n_cores + s.n_pairs
+    pairs, field = np.arange(3 * s.n_cores, 3 * n), np.arange(3 * n, 3 * n + 3)
+    rotation = core_fixed_rotations(s.positions, s.pairs)
+    assert rotation.shape[1] == 1
+    h_pp = h[np.ix_(pairs, pairs)]
+    assert abs(float(rotation[:, 0] @ h_pp @ rotation[:, 0])) < 1e-4  # a zero mode, eV/Å²
+    alpha = polarizability_from_hessian(h, s)
+    stiff = h.copy()
+    stiff[np.ix_(pairs, pairs)] += 1e8 * rotation @ rotation.T
+    np.testing.assert_allclose(alpha, -schur_complement(stiff, field, pairs), atol=1e-6)
+    assert np.linalg.eigvalsh(alpha)[0] > 0 and pair_minimum_problem(h, s) == ""
+    plain = -schur_complement(h, field, pairs)
+    assert np.linalg.eigvalsh(plain)[-1] > 30 * np.linalg.eigvalsh(alpha)[-1]
+    assert alpha[2, 2] == pytest.approx(plain[2, 2], rel=1e-3)  # the axis: no coupling

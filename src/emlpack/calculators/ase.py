@@ -26,7 +26,9 @@ Voigt, ASE sign), ``dipole`` (molecules: sum q r over cores and pairs, e·Å),
 ``electron_pairs`` (Å), ``pair_forces`` (eV/Å), and ``energy_std``, ``forces_std``,
 ``dipole_std``, ``stress_std``. Relaxation diagnostics are in ``calc.relax_result`` (the first
 member's) and ``calc.relax_results`` (one per member relaxed in the last call). A failed
-relaxation raises :class:`ase.calculators.calculator.CalculationFailed` naming the reason; with
+relaxation (the solver's reason, or pairs not at a minimum: a smallest pair curvature the
+solver measured at or below ``-FLAT_CURVATURE``, whatever the solver said) raises
+:class:`ase.calculators.calculator.CalculationFailed` naming the reason; with
 ``failed_members="drop"`` an ensemble instead leaves the failed member out, of this result and
 of every later one of the same molecule (``calc.dropped``: member index -> reason), so that the
 results stay one smooth surface, and says so in every result's warnings (as the ``emlp``
@@ -66,6 +68,7 @@ from emlpack.calculators.ensemble import (
 from emlpack.geometry import carry_pairs
 from emlpack.io.ase_convert import FIELD_KEY, PAIRS_KEY, atoms_to_structure
 from emlpack.nn.potential import EMLP
+from emlpack.pairs.checks import FLAT_CURVATURE, check_pairs
 from emlpack.pairs.relax import RelaxOptions, RelaxResult
 from emlpack.pairs.solvers import BatchedSolver, PairSolver
 
@@ -261,6 +264,10 @@ class EMLPCalculator(Calculator):
                 result = solver.relax(member.model, structure)
                 self.relax_results.append(result)
                 self.relax_result = self.relax_results[0]
+                if not result.reason:  # not at a minimum, whatever the solver said
+                    result.reason = check_pairs(np.zeros((0, 3)), np.zeros((0, 3)),
+                                                min_curvature=result.min_curvature,
+                                                flat_curvature=FLAT_CURVATURE)
                 if result.reason:
                     which = f" (model {k}: {member.source})" if len(self.ensemble) > 1 else ""
                     failure = (f"electron-pair relaxation failed for"

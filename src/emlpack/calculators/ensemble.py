@@ -34,7 +34,7 @@ from emlpack.data.references import (
     hydride_coefficients,
     reference_from_metadata,
 )
-from emlpack.errors import EmlpackError
+from emlpack.errors import BrokenResultError, EmlpackError
 from emlpack.nn.checkpoint import load_model, read_checkpoint
 from emlpack.nn.potential import EMLP, for_evaluation
 
@@ -295,6 +295,30 @@ def load_pretrained(name: str, dtype: torch.dtype = torch.float64,
 
 
 # ------------------------------------------------------------------ statistics over members
+#: the fewest sound members of an ensemble whose mean and spread are reported
+MIN_SOUND_MEMBERS = 2
+
+
+def sound_members(problems: Sequence[str], labels: Sequence[str], where: str = "") -> list[int]:
+    """Indices of the members whose result is sound (``problems[k]`` empty: e.g. a relaxation
+    that converged to a minimum) and so enter a reported mean; the others are left out, as a
+    failed relaxation is. Raises :class:`~emlpack.errors.BrokenResultError` naming each
+    problem when the single model's result is broken, or fewer than
+    :data:`MIN_SOUND_MEMBERS` of an ensemble's are sound (a mean of one is no ensemble
+    result, and most members failing says the structure is outside the models' reach)."""
+    keep = [k for k, p in enumerate(problems) if not p]
+    if len(keep) == len(problems):
+        return keep
+    prefix = f"{where}: " if where else ""
+    if len(problems) == 1:
+        raise BrokenResultError(f"{prefix}no result to report: {problems[0]}")
+    if len(keep) < MIN_SOUND_MEMBERS:
+        broken = "; ".join(f"{labels[k]}: {p}" for k, p in enumerate(problems) if p)
+        raise BrokenResultError(
+            f"{prefix}no result to report: {len(keep)} of {len(problems)} models sound, at"
+            f" least {MIN_SOUND_MEMBERS} needed ({broken})")
+    return keep
+
 def member_mean(objects: Sequence[_T]) -> _T:
     """The field-wise mean of dataclass results of the members (arrays and floats averaged,
     ``None`` kept), an object of the same type: e.g. the ensemble's polarizability tensor."""

@@ -5,7 +5,10 @@ One module per command group (:mod:`~emlpack.cli.data`, :mod:`~emlpack.cli.train
 checks in :mod:`~emlpack.cli.common`, and one error path here: every
 :class:`~emlpack.errors.EmlpackError` (bad file, model, structure or argument) is printed as one
 line, ``emlp <command>: error: <file, frame: problem>``, and exits 2 (``--debug`` shows the
-traceback); Ctrl-C exits 130 and says whether re-running the command resumes. Handlers import
+traceback); a result that cannot be reported (:class:`~emlpack.errors.BrokenResultError`: too
+few ensemble members, or the single model, reached a sound result) is one line
+``emlp <command>: failed: ...`` and exits 3; Ctrl-C exits 130 and says whether re-running the
+command resumes. Handlers import
 their modules lazily so that ``emlp --help`` stays fast.
 """
 
@@ -14,11 +17,13 @@ from __future__ import annotations
 import argparse
 import sys
 
-from emlpack.errors import EmlpackError, InputError
+from emlpack.errors import BrokenResultError, EmlpackError, InputError
 from emlpack.threads import configure_thread_environment
 
-#: exit status of a user error (as argparse's own) and of an interrupt (128 + SIGINT)
+#: exit status of a user error (as argparse's own), of a result that cannot be reported (as
+#: ``emlp md``'s watchdog stop) and of an interrupt (128 + SIGINT)
 EXIT_USER_ERROR = 2
+EXIT_BROKEN_RESULT = 3
 EXIT_INTERRUPTED = 130
 #: file-system errors a user causes (a missing input, a folder given for a file)
 _FILE_ERRORS = (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError)
@@ -51,7 +56,8 @@ def one_line(exc: BaseException) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``emlp`` with ``argv`` (default: the command line); returns the exit status: the
-    command's own (0 on success), 2 for a user error, 130 after Ctrl-C."""
+    command's own (0 on success), 2 for a user error, 3 for a result that cannot be reported,
+    130 after Ctrl-C."""
     args = build_parser().parse_args(argv)
     debug = getattr(args, "debug", False)
     # before torch is imported: idle OpenMP threads sleep (a busy machine otherwise makes every
@@ -68,6 +74,11 @@ def main(argv: list[str] | None = None) -> int:
         hint = "; re-run the same command to resume" if getattr(args, "resumable", False) else ""
         print(f"\nemlp {args.command}: interrupted{hint}", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except BrokenResultError as exc:
+        if debug:
+            raise
+        print(f"emlp {args.command}: failed: {one_line(exc)}", file=sys.stderr)
+        return EXIT_BROKEN_RESULT
     except (EmlpackError, *_FILE_ERRORS) as exc:
         if debug:
             raise

@@ -1,8 +1,9 @@
 """Arguments and checks shared by the ``emlp`` commands.
 
 Every check here is cheap and runs before any expensive work (pair guess, relaxation,
-Hessians, MD): the model file, the structure's elements, periodicity, cell, close atoms, pair
-count, the field, run lengths. A failed check raises an :class:`~emlpack.errors.EmlpackError`
+Hessians, MD): the model file, the structure's elements, periodicity, cell, close atoms, pairs
+out of the model's reach, a structure too large for the neighbour list, pair count, the field,
+run lengths. A failed check raises an :class:`~emlpack.errors.EmlpackError`
 whose one-line message names the file, the frame and the problem; ``emlp`` prints it and exits 2.
 """
 
@@ -23,7 +24,7 @@ import numpy as np
 from emlpack.errors import InputError, MissingDependencyError, ModelFileError
 
 if TYPE_CHECKING:
-    from collections.abc import Collection, Sequence
+    from collections.abc import Collection, Iterable, Sequence
 
     from ase import Atoms
 
@@ -82,9 +83,21 @@ class Log:
         print(text, flush=True)
 
     def progress(self, text: str) -> None:
-        """Print a progress line to stderr, unless ``quiet``."""
+        """Print a progress line to stderr, unless ``quiet`` (above a progress bar, without
+        breaking it: :func:`emlpack.progress.write`)."""
         if not self.quiet:
-            print(text, file=sys.stderr, flush=True)
+            from emlpack.progress import write
+
+            write(text, file=sys.stderr)
+
+    def bar(self, iterable: Iterable, desc: str, unit: str, total: int | None = None
+            ) -> Iterable:
+        """``iterable`` with a progress bar on stderr (:func:`emlpack.progress.progress`:
+        rate and time left on a terminal, plain lines otherwise), none when ``quiet``."""
+        from emlpack.progress import progress
+
+        return progress(iterable, total=total, desc=desc, unit=unit, enabled=not self.quiet,
+                        file=sys.stderr)
 
 
 # --------------------------------------------------------------------------- arguments
@@ -142,8 +155,8 @@ def add_threads_argument(p: argparse.ArgumentParser, default: int | None = None)
 
 
 def add_quiet_argument(p: argparse.ArgumentParser) -> None:
-    """The ``--quiet`` option (no progress messages)."""
-    p.add_argument("--quiet", action="store_true", help="no progress messages")
+    """The ``--quiet`` option (no progress messages, no progress bar)."""
+    p.add_argument("--quiet", action="store_true", help="no progress messages or bar")
 
 
 def set_threads(n: int | None) -> None:
@@ -350,9 +363,10 @@ def one_line_text(exc: BaseException) -> str:
 
 
 def check_atoms(atoms: Atoms, where: str, elements: Collection[int], periodic: bool | None = None,
-                command: str = "") -> None:
+                command: str = "", cutoff: float | None = None) -> None:
     """The cheap checks on the raw frame: elements the model knows, pbc and cell consistent,
-    periodicity the command needs, no cores closer than :data:`MIN_CORE_DISTANCE`."""
+    periodicity the command needs, no cores closer than :data:`MIN_CORE_DISTANCE`; with the
+    model's ``cutoff`` (Å) also :func:`check_reach`."""
     from ase.data import chemical_symbols
 
     from emlpack.structure import PAIR_NUMBER
@@ -384,6 +398,15 @@ def check_atoms(atoms: Atoms, where: str, elements: Collection[int], periodic: b
                          " this is a molecule")
     if periodic is False and is_crystal:
         raise InputError(f"{where}: {command} needs a molecule; this is a crystal (pbc true)")
+    with np.errstate(over="ignore", invalid="ignore"):  # e.g. 1e308 Å: refused below
+        _check_distances(atoms, where, cores, cell, is_crystal, cutoff)
+
+
+def _check_distances(atoms: Atoms, where: str, cores: np.ndarray, cell: np.ndarray,
+                     is_crystal: bool, cutoff: float | None) -> None:
+    from ase.data import chemical_symbols
+
+    numbers = atoms.numbers
     pos = atoms.positions[cores]
     if len(pos) > 1:
         d = pos[:, None, :] - pos[None, :, :]
@@ -399,6 +422,46 @@ def check_atoms(atoms: Atoms, where: str, elements: Collection[int], periodic: b
                 f"{where}: atoms {ci} ({chemical_symbols[numbers[ci]]}) and {cj}"
                 f" ({chemical_symbols[numbers[cj]]}) are {r[i, j]:.2f} Å apart (closer than"
                 f" {MIN_CORE_DISTANCE:g} Å)")
+    if cutoff is not None:
+        check_reach(atoms, where, cutoff)
+
+
+def check_reach(atoms: Atoms, where: str, cutoff: float) -> None:
+    """Refuse an electron pair (``Es`` row) farther than the model's ``cutoff`` (Å) from every
+    core (minimum image in a crystal: outside the reach of every core's short range, so not a
+    pair of this structure), and a structure larger than the neighbour list can take
+    (:func:`emlpack.nn.neighbors.neighbor_list_problem`; it would crash vesin), naming the
+    particle farthest from the others."""
+    from ase.data import chemical_symbols
+
+    from emlpack.geometry import minimum_image_distances
+    from emlpack.nn.neighbors import neighbor_list_problem
+    from emlpack.structure import PAIR_NUMBER
+
+    numbers, positions = atoms.numbers, atoms.positions
+    pbc = bool(np.all(atoms.pbc))
+    is_pair = numbers == PAIR_NUMBER
+    if is_pair.any() and (~is_pair).any():
+        d = minimum_image_distances(positions[is_pair], positions[~is_pair], atoms.cell.array,
+                                    pbc).min(axis=1)
+        k = int(np.argmax(d))
+        if d[k] > cutoff:
+            row = int(np.flatnonzero(is_pair)[k])
+            raise InputError(
+                f"{where}: electron pair at particle row {row} (Es at {_xyz(positions[row])} Å)"
+                f" is {d[k]:.4g} Å from the"
+                f" nearest core, farther than the model's cutoff {cutoff:g} Å from every core")
+    problem = neighbor_list_problem(positions, atoms.cell.array, pbc, cutoff)
+    if problem:
+        far = int(np.argmax(np.linalg.norm(positions - np.median(positions, axis=0), axis=1)))
+        raise InputError(
+            f"{where}: {problem}: particle row {far} ({chemical_symbols[numbers[far]]} at"
+            f" {_xyz(positions[far])} Å) is the farthest from the others")
+
+
+def _xyz(point: np.ndarray) -> str:
+    """A position (Å) for a message: ``(x, y, z)``, 4 significant digits."""
+    return "(" + ", ".join(f"{x:.4g}" for x in point) + ")"
 
 
 def read_structure(args: argparse.Namespace, model: EMLP, log: Log, periodic: bool | None = None,
@@ -407,16 +470,16 @@ def read_structure(args: argparse.Namespace, model: EMLP, log: Log, periodic: bo
 
     Returns ``(structure, where)``. The field is applied separately (:func:`apply_field`).
     """
-    from emlpack.io.extxyz import check_pair_count, frame_to_structure
+    from emlpack.io.extxyz import check_pair_count, frame_field, frame_to_structure
     from emlpack.structure import PAIR_NUMBER
 
     atoms, where = read_input_atoms(args)
     if args.charge is not None:
         atoms.info["charge"] = float(args.charge)
     charge = float(atoms.info.get("charge", 0.0))
-    check_atoms(atoms, where, model_elements(model), periodic, command)
+    check_atoms(atoms, where, model_elements(model), periodic, command, model.config.cutoff)
     requested = requested_field(args)
-    check_field(_file_field(atoms, where) if requested is None else requested, args, where)
+    check_field(frame_field(atoms, where) if requested is None else requested, args, where)
     is_pair = atoms.numbers == PAIR_NUMBER
     if is_pair.any():
         return frame_to_structure(atoms, where), where
@@ -437,19 +500,9 @@ def read_structure(args: argparse.Namespace, model: EMLP, log: Log, periodic: bo
         raise InputError(f"{where}: the electron-pair guess ({method}) failed:"
                          f" {one_line_text(exc)}") from exc
     log.progress(f"guessed {len(pairs)} electron pairs in {time.perf_counter() - t0:.1f} s")
-    field = _file_field(atoms, where)
+    field = frame_field(atoms, where)
     return atoms_to_structure(cores, pairs=pairs, field=field, charge=charge,
                               source=f"{where} (guessed pairs)"), where
-
-
-def _file_field(atoms: Atoms, where: str) -> np.ndarray | None:
-    from emlpack.units import FIELD_AU_IN_V_PER_A
-
-    if "external_field" in atoms.info:
-        return np.asarray(atoms.info["external_field"], float).reshape(3)
-    if "efield" in atoms.info:
-        return np.asarray(atoms.info["efield"], float).reshape(3) * FIELD_AU_IN_V_PER_A
-    return None
 
 
 def requested_field(args: argparse.Namespace) -> np.ndarray | None:

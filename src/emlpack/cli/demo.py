@@ -97,9 +97,8 @@ def label_tasks(n_per_molecule: int = N_PER_MOLECULE, seed: int = 0) -> list[tup
 def generate_labels(store_path: Path, n_per_molecule: int = N_PER_MOLECULE,
                     workers: int = 2) -> None:
     """Label every task not yet in the store (resumable), in ``workers`` processes."""
-    from tqdm import tqdm
-
     from emlpack.data.store import DatasetStore
+    from emlpack.progress import progress
     from emlpack.qm.executor import Executor
 
     with DatasetStore(store_path, "a") as store:
@@ -112,7 +111,7 @@ def generate_labels(store_path: Path, n_per_molecule: int = N_PER_MOLECULE,
             for task in todo:
                 executor.submit(_label_one, task)
             results = (fut.result() for _, fut in executor.completed())
-            bar = tqdm(results, total=len(todo), desc="  labeling", unit="conf")
+            bar = progress(results, total=len(todo), desc="  labeling", unit="conf")
             for key, name, kind, s, error in bar:
                 if s is None:
                     store.add_failures([{"key": key, "molecule_id": name, "kind": kind,

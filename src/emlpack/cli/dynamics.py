@@ -38,7 +38,14 @@ def add_md(sub: Subparsers) -> None:
     """Register ``emlp md``: Born-Oppenheimer MD with relaxed electron pairs (NVT/NVE, optional
     field); resumable."""
     p = add_parser(sub, "md", "Born-Oppenheimer MD with relaxed electron pairs (NVT/NVE,"
-                   " optional field); resumable", threads_default=1)
+                   " optional field); resumable", threads_default=1,
+                   description="Born-Oppenheimer MD with relaxed electron pairs (NVT/NVE,"
+                   " optional field); resumable. Energies (trajectory, md.log, summary.json)"
+                   " are on the DFT scale when the checkpoint holds its DFT hydride references"
+                   " and the molecule is neutral, as the property commands report them (a"
+                   " constant shift of the model's own energy: summary.json gives both);"
+                   " progress: a bar with rate and time left on a terminal, a line every tenth"
+                   " of the run otherwise, the step log in md.log.")
     add_model_argument(p, ensemble=False)
     add_structure_arguments(p)
     p.add_argument("--frame", dest="index", help=argparse.SUPPRESS)  # the old name of --index
@@ -99,10 +106,10 @@ def add_md(sub: Subparsers) -> None:
         resolved = {**settings(args), **field_info, "structure": where}
         if args.no_resume or not (out / "settings.json").exists():
             write_json(out / "settings.json", resolved)
-        handlers = _md_log_handlers(out, args.quiet)
+        handlers = _md_log_handlers(out)
         try:
             result = run_md(
-                model, s, args.steps, out, dt_fs=args.dt, temperature_K=args.temperature,
+                member, s, args.steps, out, dt_fs=args.dt, temperature_K=args.temperature,
                 ensemble="nve" if args.nve else "nvt",
                 field=s.field if requested_field(args) is not None else None,
                 seed=args.seed, tdamp_fs=args.tdamp, relax=args.relax, fmax=args.fmax,
@@ -110,6 +117,7 @@ def add_md(sub: Subparsers) -> None:
                 resume=not args.no_resume,
                 watchdog=Watchdog(curvature_every=args.curvature_every,
                                   max_energy_mismatch=args.max_energy_mismatch),
+                progress=not args.quiet,
             )
         except MDWatchdogError as exc:  # a failed computation, not a user error: exit 3
             print(f"emlp md: watchdog: {exc}", file=sys.stderr)
@@ -124,7 +132,7 @@ def add_md(sub: Subparsers) -> None:
         last = read_structures(out / "trajectory.xyz", "-1")[0]
         warnings = [f"bonding changed: {c}" for c in
                     bonding_changes(s.numbers, s.positions, last.positions)]
-        energies = _final_energies(member, s, last)
+        energies = _final_energies(member, s, last, result.energy_scale)
         write_json(out / "summary.json", {**json.loads((out / "summary.json").read_text()),
                                           **energies})
         if result.watchdog_events:
@@ -145,15 +153,16 @@ def add_md(sub: Subparsers) -> None:
     p.set_defaults(func=run, resumable=True)
 
 
-def _final_energies(member: ModelMember, structure: Structure, last: Structure) -> dict:
-    """The last frame's potential and conserved energies for summary.json, on the DFT scale
-    when the checkpoint holds hydride references (:func:`energy_record`; the shift is a
-    constant of the composition, so the conserved energy moves by the same amount). The
-    trajectory's per-frame energies stay the model's own."""
-    record = energy_record(member, structure, last.info["potential_energy"])
-    shift = record["energy_eV"] - record["model_energy_eV"]
-    return {**record,
-            "final_conserved_energy_eV": float(last.info["conserved_energy"] + shift)}
+def _final_energies(member: ModelMember, structure: Structure, last: Structure,
+                    scale: str) -> dict:
+    """The last frame's potential and conserved energies for summary.json, as the trajectory
+    holds them (on the DFT scale when ``scale`` is ``"dft"``), with the model's own and the
+    relative energy beside them (:func:`energy_record`; the DFT shift is a constant of the
+    composition)."""
+    shift = member.dft_shift(structure.numbers) if scale == "dft" else 0.0
+    record = energy_record(member, structure, last.info["potential_energy"] - shift)
+    record["energy_scale"] = scale
+    return {**record, "final_conserved_energy_eV": float(last.info["conserved_energy"])}
 
 
 def _write_atoms_only(trajectory: Path, path: Path) -> None:
@@ -182,10 +191,11 @@ def _add_settings(json_path: str | None, args: argparse.Namespace) -> None:
         write_json(json_path, data)
 
 
-def _md_log_handlers(folder: Path, quiet: bool):
-    """Send the package's log (the MD driver's progress and watchdog events, the solvers'
-    warnings) to ``md.log`` and to stderr (warnings only with --quiet) for the run; returns the
-    function that removes the handlers again."""
+def _md_log_handlers(folder: Path):
+    """Send the package's log (the MD driver's step lines and watchdog events, the solvers'
+    warnings) to ``md.log``, and its warnings to stderr, where the progress bar shows the
+    steps (none with --quiet), for the run; returns the function that removes the handlers
+    again."""
     import logging
 
     from emlpack.dynamics.md import LOG
@@ -195,7 +205,7 @@ def _md_log_handlers(folder: Path, quiet: bool):
     log.setLevel(logging.INFO)
     fmt = logging.Formatter("%(asctime)s %(levelname)s %(message)s")
     handlers = [logging.FileHandler((folder / LOG).resolve()), logging.StreamHandler()]
-    handlers[1].setLevel(logging.WARNING if quiet else logging.INFO)
+    handlers[1].setLevel(logging.WARNING)
     for handler in handlers:
         handler.setFormatter(fmt)
         log.addHandler(handler)

@@ -2,7 +2,14 @@
 relaxed as asked, a property out. Every check runs before the pair guess and the relaxation;
 whatever looks broken afterwards (bonding changed, a saddle point, a negative stiffness
 eigenvalue, a failed pair relaxation) is printed as a warning, recorded in the JSON output
-(``"warnings": [...]``) and turns the summary into "converged with warnings"."""
+(``"warnings": [...]``) and turns the summary into "converged with warnings".
+
+A member of an ensemble whose result is broken (failed pair relaxation, broken pairs or
+changed bonding after the optimisation, pairs not at a minimum: an imaginary pair mode or a
+negative clamped polarizability eigenvalue, :func:`emlpack.properties.response.
+pair_minimum_problem`) is left out of the mean and spread; with fewer than two members left,
+or the single model's result broken, the command writes no values and exits 3 with one line
+(:func:`emlpack.calculators.ensemble.sound_members`)."""
 
 from __future__ import annotations
 
@@ -70,8 +77,9 @@ class Prepared:
     own pairs (and positions, cell) from the same input: ``structures[k]`` belongs to
     ``members[k]``; the commands report the members' mean and their spread (``*_std``). A
     member whose relaxation left a broken structure (failed pair relaxation, merged or stray
-    pairs after the optimisation, changed bonding) is left out of them when another member's
-    is sound (``left_out``: their sources; a warning says so).
+    pairs after the optimisation, changed bonding) or whose pairs are not at a minimum
+    (:meth:`minima`) is left out of them (``left_out``: their sources; a warning says so), as
+    long as two members stay (:func:`~emlpack.calculators.ensemble.sound_members`).
     """
 
     def __init__(self, members: Iterable[ModelMember], structures: Iterable[Structure],
@@ -107,6 +115,50 @@ class Prepared:
     def each(self) -> Iterator[tuple[int, ModelMember, Structure]]:
         """``(index, member, structure)`` for every member."""
         return zip(range(len(self.members)), self.members, self.structures, strict=True)
+
+    def leave_out(self, problems: list[str], why: str) -> list[int]:
+        """Leave the members with a non-empty ``problems[k]`` out (a warning names them and
+        ``why``); returns the indices kept. Raises
+        :class:`~emlpack.errors.BrokenResultError` when too few are left
+        (:func:`~emlpack.calculators.ensemble.sound_members`)."""
+        from emlpack.calculators.ensemble import sound_members
+
+        keep = sound_members(problems, self.labels, self.where)
+        if len(keep) < len(self.members):
+            names = ", ".join(self.labels[k] for k in range(len(self.members)) if k not in keep)
+            self.warnings.append(f"{names} left out of the results ({why}): the mean and"
+                                 f" spread of {len(keep)} of {len(self.members)} models")
+            self.left_out += [self.members[k].source for k in range(len(self.members))
+                              if k not in keep]
+            self.members, self.structures, self.relax_infos, self.labels = (
+                [seq[k] for k in keep]
+                for seq in (self.members, self.structures, self.relax_infos, self.labels))
+        return keep
+
+    def hessians(self, what: str = "extended Hessian") -> list[np.ndarray]:
+        """The extended Hessian of every member at its structure
+        (:func:`emlpack.properties.hessian.extended_hessian`), in order."""
+        from emlpack.properties.hessian import extended_hessian
+
+        self.log.progress(f"{what} ...")
+        each = list(self.each())
+        if self.ensemble:  # per member: a bar with rate and time left
+            each = self.log.bar(each, "extended Hessians", "model")
+        return [extended_hessian(m.model, s)[1].numpy() for _, m, s in each]
+
+    def minima(self, hessians: list[np.ndarray]) -> list[np.ndarray]:
+        """Leave out the members whose pairs are not at a minimum by their extended
+        ``hessians`` (:func:`emlpack.properties.response.pair_minimum_problem`; each is also
+        a warning); returns the Hessians of the members kept."""
+        from emlpack.properties.response import pair_minimum_problem
+
+        problems = [pair_minimum_problem(h, s) for h, s in
+                    zip(hessians, self.structures, strict=True)]
+        for k, problem in enumerate(problems):
+            if problem and self.ensemble:
+                self.warnings.append(f"{self.labels[k]}: {problem}")
+        keep = self.leave_out(problems, "pairs not at a minimum, see above")
+        return [hessians[k] for k in keep]
 
     def record(self, args: argparse.Namespace, data: dict) -> dict:
         """``data`` with the field, relaxation, warnings, ensemble and settings added."""
@@ -174,7 +226,10 @@ def prepare(args: argparse.Namespace, periodic: bool | None, command: str) -> Pr
     ensemble = ModelEnsemble(members)
     warnings = ensemble.notices + ensemble.domain_warnings(s.numbers, s.positions, s.pbc)
     structures, infos = [], []
-    for k, member in enumerate(members):
+    each = list(enumerate(members))
+    if len(members) > 1:  # per member: a bar with rate and time left
+        each = log.bar(each, f"{command.split()[-1]}: models relaxed", "model")
+    for k, member in each:
         if len(members) > 1:
             log.progress(f"model {k + 1} of {len(members)} ({member.source}):")
         notes: list[str] = []
@@ -182,27 +237,22 @@ def prepare(args: argparse.Namespace, periodic: bool | None, command: str) -> Pr
         structures.append(relaxed)
         infos.append(info)
         warnings += [f"model {k + 1}: {w}" if len(members) > 1 else w for w in notes]
-    broken = [k for k, info in enumerate(infos) if _broken(info)]
-    labels = [f"model {k + 1}" for k in range(len(members))]
-    left_out = []
-    if broken and len(broken) < len(members):
-        keep = [k for k in range(len(members)) if k not in broken]
-        names = ", ".join(labels[k] for k in broken)
-        warnings.append(f"{names} left out of the results (broken structure, see above):"
-                        f" {'the mean and spread of' if len(keep) > 1 else 'the values of'}"
-                        f" {len(keep)} of {len(members)} models")
-        left_out = [members[k].source for k in broken]
-        members, structures, infos, labels = ([seq[k] for k in keep]
-                                              for seq in (members, structures, infos, labels))
-    return Prepared(members, structures, where, field_info, warnings, infos, log, left_out,
-                    labels)
+    prep = Prepared(members, structures, where, field_info, warnings, infos, log)
+    prep.leave_out([_problem(info) for info in infos], "broken structure, see above")
+    return prep
 
 
-def _broken(info: dict) -> bool:
-    """Whether a member's relaxation record (``relax``) says its structure is broken."""
-    opt = info.get("optimisation", {})
-    return bool(info.get("pairs", {}).get("failed") or opt.get("pair_check")
-                or opt.get("bonding_changes"))
+def _problem(info: dict) -> str:
+    """Why a member's relaxation record (``relax``) says its structure is broken, or ``""``."""
+    pairs, opt = info.get("pairs", {}), info.get("optimisation", {})
+    reasons = []
+    if pairs.get("failed"):
+        reasons.append(f"pair relaxation failed: {pairs.get('reason') or 'failed'}")
+    if opt.get("pair_check"):
+        reasons.append(f"optimisation failed, broken electron pairs: {opt['pair_check']}")
+    if opt.get("bonding_changes"):
+        reasons.append("bonding changed: " + "; ".join(opt["bonding_changes"]))
+    return "; ".join(reasons)
 
 
 def relax(model: EMLP, s: Structure, level: str, args: argparse.Namespace, log: Log,
@@ -283,6 +333,7 @@ def add_optimize(sub: Subparsers) -> None:
         from emlpack.io import split_pairs, structure_to_atoms, write_structures
 
         prep = prepare(args, None, "emlp optimize")
+        prep.minima(prep.hessians("extended Hessian (minimum check)"))
         out = Path(args.output)
         if args.no_pairs:
             frames = []
@@ -352,17 +403,20 @@ def _line_spectrum(args: argparse.Namespace, kind: str) -> int:
            if args.reference else None)
     prep = prepare(args, False, f"emlp {kind}")
     t0 = time.perf_counter()
+    hessians = prep.minima(prep.hessians("extended Hessian and normal modes"))
     if kind == "ir":
-        from emlpack.properties.ir import ir_spectrum
+        from emlpack.properties.ir import ir_from_hessian
 
-        prep.log.progress("extended Hessian and normal modes ...")
-        spectra = [ir_spectrum(m.model, s) for _, m, s in prep.each()]
+        spectra = [ir_from_hessian(h, s) for h, s in zip(hessians, prep.structures, strict=True)]
         lines = [(x.frequencies, x.intensities) for x in spectra]
     else:
         from emlpack.properties.raman import raman_spectrum
 
-        prep.log.progress("extended Hessian, normal modes and polarizability derivatives ...")
-        spectra = [raman_spectrum(m.model, s, step=args.step) for _, m, s in prep.each()]
+        prep.log.progress("polarizability derivatives ...")
+        each = list(prep.each())
+        if prep.ensemble:
+            each = prep.log.bar(each, "Raman spectra", "model")
+        spectra = [raman_spectrum(m.model, s, step=args.step) for _, m, s in each]
         lines = [(x.frequencies, x.activities) for x in spectra]
     for k, x in enumerate(spectra):
         if prep.ensemble:
@@ -442,13 +496,14 @@ def add_polarizability(sub: Subparsers) -> None:
 
     def run(args: argparse.Namespace):
         from emlpack.calculators.ensemble import member_mean, member_spread
-        from emlpack.properties.response import molecule_response
+        from emlpack.properties.response import molecule_response_from_hessian
         from emlpack.units import COULOMB_EV_A, POLARIZABILITY_A3_IN_BOHR3
 
         prep = prepare(args, False, "emlp polarizability")
         t0 = time.perf_counter()
-        prep.log.progress("extended Hessian and Schur complements ...")
-        members = [molecule_response(m.model, s, relax_cores=True) for _, m, s in prep.each()]
+        hessians = prep.minima(prep.hessians("extended Hessian and Schur complements"))
+        members = [molecule_response_from_hessian(h, s, relax_cores=True)
+                   for h, s in zip(hessians, prep.structures, strict=True)]
         resp = member_mean(members) if prep.ensemble else members[0]
         prep.log(resp.text())
         data = resp.as_dict()
@@ -465,14 +520,15 @@ def add_polarizability(sub: Subparsers) -> None:
                     f" {POLARIZABILITY_SPREAD_WARNING:.0%} of its mean: outside the models'"
                     " domain?")
         prep.log(f"(extended Hessian and Schur complements: {time.perf_counter() - t0:.2f} s)")
-        for k, r in enumerate(members):
-            low = float(np.linalg.eigvalsh(0.5 * (r.polarizability + r.polarizability.T))[0])
+        for k, r in enumerate(members):  # the clamped one is positive (prep.minima)
+            relaxed = r.polarizability_relaxed
+            low = float(np.linalg.eigvalsh(0.5 * (relaxed + relaxed.T))[0])
             if low < 0:
                 who = f"{prep.labels[k]}: " if prep.ensemble else ""
                 prep.warnings.append(
-                    f"{who}negative polarizability eigenvalue"
-                    f" {low * COULOMB_EV_A * POLARIZABILITY_A3_IN_BOHR3:.3g} bohr^3 (pairs not"
-                    " at a minimum?)")
+                    f"{who}negative eigenvalue of the polarizability with relaxed cores"
+                    f" {low * COULOMB_EV_A * POLARIZABILITY_A3_IN_BOHR3:.3g} bohr^3: the cores"
+                    " are not at a minimum (--relax positions)")
         write_json(args.output, prep.record(args, {**prep.energies(), **data}))
         prep.log(f"wrote {args.output}")
         prep.log(prep.summary())
@@ -490,12 +546,13 @@ def add_response(sub: Subparsers) -> None:
 
     def run(args: argparse.Namespace):
         from emlpack.calculators.ensemble import member_mean, member_spread
-        from emlpack.properties.response import crystal_response
+        from emlpack.properties.response import crystal_response_from_hessian
 
         prep = prepare(args, True, "emlp response")
         t0 = time.perf_counter()
-        prep.log.progress("extended Hessian and all tensors ...")
-        members = [crystal_response(m.model, s) for _, m, s in prep.each()]
+        hessians = prep.minima(prep.hessians("extended Hessian and all tensors"))
+        members = [crystal_response_from_hessian(h, s)
+                   for h, s in zip(hessians, prep.structures, strict=True)]
         resp = member_mean(members) if prep.ensemble else members[0]
         prep.log(resp.text())
         data = resp.as_dict()

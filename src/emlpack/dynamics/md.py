@@ -46,10 +46,17 @@ step, pairs as ``Es`` rows; see :func:`frame_structure` for the ``info`` keys), 
 (full integrator, thermostat and pair state, written atomically with the byte length of the
 trajectory it belongs to) and ``summary.json`` (``stopped.json`` instead when the watchdog stopped
 the run: :func:`emlpack.dynamics.analysis.analyze_trajectory` then calls it unstable); progress
-and watchdog events go to
-the module's logger (``emlp md`` writes them to ``md.log``). Re-running the same
-call resumes from the checkpoint (a partial trailing frame is cut off) and continues the same
-trajectory.
+lines and watchdog events go to the module's logger (``emlp md`` writes them to ``md.log``),
+and with ``progress=True`` a bar over the steps (:func:`emlpack.progress.progress`) shows the
+rate and the time left. Re-running the same call resumes from the checkpoint (a partial
+trailing frame is cut off) and continues the same trajectory.
+
+Energies (the frames' ``energy``, ``potential_energy`` and ``conserved_energy``, the log's
+``Epot``/``Econs``) are on the DFT scale when the model is a
+:class:`~emlpack.calculators.ensemble.ModelMember` (or a checkpoint path) that carries its DFT
+hydride references and the molecule is neutral, as every property command reports them
+(``E = U + c . (E_DFT - U_hyd)``, a constant of the composition: the dynamics are the same);
+else the model's own. :attr:`MDResult.energy_scale` says which (``"dft"`` or ``"model"``).
 """
 
 from __future__ import annotations
@@ -60,7 +67,7 @@ import logging
 import os
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -79,13 +86,14 @@ from ase.md.verlet import VelocityVerlet
 
 from emlpack._files import atomic_write, write_npz_atomic
 from emlpack.calculators.ase import EMLPCalculator
+from emlpack.calculators.ensemble import ModelMember, load_member
 from emlpack.errors import EmlpackError
 from emlpack.io.extxyz import write_structures
-from emlpack.nn.checkpoint import load_model
 from emlpack.nn.potential import EMLP
 from emlpack.pairs.checks import MAX_CORE_DISTANCE, MD_MIN_PAIR_DISTANCE, check_pairs
 from emlpack.pairs.guess import guess_matched
 from emlpack.pairs.solvers import WarmStartSolver, md_solver
+from emlpack.progress import progress as progress_bar
 from emlpack.structure import Structure
 
 if TYPE_CHECKING:
@@ -194,10 +202,12 @@ class MDResult:
     ensemble: str
     resumed_from: int = 0
     events: list = field(default_factory=list)
+    #: the energies' scale: "dft" (the model's DFT hydride references) or "model"
+    energy_scale: str = "model"
 
 
 def run_md(
-    model: EMLP | str | Path,
+    model: EMLP | ModelMember | str | Path,
     structure: Structure,
     steps: int,
     output: str | Path,
@@ -218,11 +228,14 @@ def run_md(
     extrapolation: int = 3,
     guess_method: str = "auto",
     callback: Callable[[int, Atoms, EMLPCalculator], None] | None = None,
+    progress: bool = False,
 ) -> MDResult:
     """Run (or resume) Born-Oppenheimer MD of ``structure`` for ``steps`` steps in total.
 
     Args:
-        model: the eMLP or a checkpoint path (evaluated in float64).
+        model: the eMLP, a :class:`~emlpack.calculators.ensemble.ModelMember` or a checkpoint
+            path (evaluated in float64; a member or checkpoint with DFT hydride references
+            gives energies on the DFT scale, see the module docstring).
         structure: start (cores; pairs may be empty: guessed and relaxed). Velocities (Å/fs)
             in ``structure.info["velocities"]`` (flat or (N, 3)) are used when present.
         steps: total number of MD steps (a resumed run continues up to it).
@@ -241,6 +254,7 @@ def run_md(
         watchdog: the checks (:class:`Watchdog`).
         callback: called after every accepted step as ``callback(step, atoms, calc)``
             (``calc.pair_solver`` is the :class:`~emlpack.pairs.solvers.WarmStartSolver`).
+        progress: a progress bar over the steps on stderr (:func:`emlpack.progress.progress`).
     """
     if ensemble not in ("nvt", "nve"):
         raise ValueError(f"ensemble must be 'nvt' or 'nve', not {ensemble!r}")
@@ -253,8 +267,11 @@ def run_md(
     out_dir.mkdir(parents=True, exist_ok=True)
     log = _log
     if isinstance(model, (str, Path)):
-        model = load_model(model, torch.float64)
-    model = model.double().eval()
+        model = load_member(model, torch.float64)
+    member = model if isinstance(model, ModelMember) else ModelMember(model)
+    model = member.model.double().eval()
+    member = replace(member, model=model)
+    dft = member.hydride_delta() is not None and structure.charge == 0
     flags = [(p, p.requires_grad) for p in model.parameters()]
     for p, _ in flags:
         p.requires_grad_(False)
@@ -265,19 +282,25 @@ def run_md(
         "tchain": tchain, "relax": relax, "fmax": fmax, "record_every": record_every,
         "extrapolation": extrapolation,
     }
+    if dft:  # a run on the model's scale (before there was a DFT scale) resumes as it was
+        signature["energy_scale"] = "dft"
     try:
-        return _Run(model, structure, field_v, out_dir, log, signature, watchdog,
-                    guess_method, callback).run(steps, resume, checkpoint_every, log_every)
+        return _Run(member, structure, field_v, out_dir, log, signature, watchdog,
+                    guess_method, callback, progress).run(steps, resume, checkpoint_every,
+                                                          log_every)
     finally:
         for p, flag in flags:
             p.requires_grad_(flag)
 
 
 class _Run:
-    def __init__(self, model: EMLP, structure: Structure, field_v: np.ndarray, out_dir: Path,
-                 log: logging.Logger, sig: dict, watchdog: Watchdog, guess_method: str,
-                 callback: Callable[[int, Atoms, EMLPCalculator], None] | None):
-        self.model, self.s0, self.field = model, structure, field_v
+    def __init__(self, member: ModelMember, structure: Structure, field_v: np.ndarray,
+                 out_dir: Path, log: logging.Logger, sig: dict, watchdog: Watchdog,
+                 guess_method: str, callback: Callable[[int, Atoms, EMLPCalculator], None] | None,
+                 progress: bool = False):
+        self.model, self.s0, self.field = member.model, structure, field_v
+        self.progress = progress
+        self.energy_scale = sig.get("energy_scale", "model")
         self.dir, self.log, self.sig = out_dir, log, sig
         self.watchdog, self.guess_method, self.callback = watchdog, guess_method, callback
         self.traj = out_dir / TRAJECTORY
@@ -286,7 +309,7 @@ class _Run:
         self.atoms.info["charge"] = float(structure.charge)
         self.solver: WarmStartSolver = md_solver(sig["relax"], fmax=sig["fmax"],
                                                  extrapolation=sig["extrapolation"])
-        self.calc = EMLPCalculator(model, field=field_v, pairs=structure.pairs,
+        self.calc = EMLPCalculator(member, field=field_v, pairs=structure.pairs,
                                    pair_solver=self.solver, check_bonding=False)
         self.atoms.calc = self.calc
         dt = sig["dt_fs"] * ase.units.fs
@@ -569,9 +592,11 @@ class _Run:
                 if path.exists():
                     path.unlink()
             self.log.info("MD %s: %d steps, dt %g fs, T %s K, field %s V/Å, relax %s, %d cores,"
-                          " %d pairs -> %s", self.sig["ensemble"].upper(), steps,
-                          self.sig["dt_fs"], self.sig["temperature_K"], self.sig["field"],
-                          self.sig["relax"], len(self.atoms), len(self.calc.initial_pairs),
+                          " %d pairs, energies on the %s scale -> %s",
+                          self.sig["ensemble"].upper(), steps, self.sig["dt_fs"],
+                          self.sig["temperature_K"], self.sig["field"], self.sig["relax"],
+                          len(self.atoms), len(self.calc.initial_pairs),
+                          self.energy_scale.upper() if self.energy_scale == "dft" else "model's",
                           self.dir)
             t0 = time.perf_counter()
             self.initial()
@@ -584,12 +609,15 @@ class _Run:
         evals0, hess0, wall0 = self.base
         step0 = 0
         record = self.sig["record_every"]
+        bar = progress_bar(total=steps, initial=min(self.step, steps), desc="md", unit="step",
+                           enabled=self.progress)
         try:
             while self.step < steps:
                 t0 = time.perf_counter()
                 self.step += 1
                 self.guarded(self.dyn.step, "step")
                 self.wall += time.perf_counter() - t0
+                bar.update(1)
                 if self.step % record == 0:
                     self.buffer.append(self.frame())
                 if self.callback is not None:
@@ -606,12 +634,16 @@ class _Run:
                         f.info["conserved_energy"],
                         (self.solver.n_evaluations - evals0) / done, (self.wall - wall0) / done,
                         len(self.events))
+                    bar.set_postfix_str(f"T {f.info['temperature']:.0f} K, Econs"
+                                        f" {f.info['conserved_energy']:.4f} eV", refresh=False)
         except MDWatchdogError:
             raise
         except BaseException:
             # interrupted: keep the frames and checkpoint of the last complete flush only
             self.buffer = []
             raise
+        finally:
+            bar.close()
         done = max(self.step - step0, 1)
         f = self.frame()
         result = MDResult(
@@ -623,7 +655,7 @@ class _Run:
             final_temperature=f.info["temperature"],
             final_conserved_energy=f.info["conserved_energy"],
             relax=self.sig["relax"], ensemble=self.sig["ensemble"], resumed_from=resumed,
-            events=self.events,
+            events=self.events, energy_scale=self.energy_scale,
         )
         atomic_write(self.dir / SUMMARY, lambda fh: json.dump(asdict(result), fh, indent=1))
         (self.dir / STOPPED).unlink(missing_ok=True)  # a stopped run resumed to its end

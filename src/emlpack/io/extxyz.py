@@ -32,6 +32,7 @@ from typing import IO, TYPE_CHECKING
 import ase.io
 import numpy as np
 from ase import Atoms
+from ase.io.extxyz import key_val_str_to_dict_regex
 from ase.stress import voigt_6_to_full_3x3_stress
 from ase.utils import string2index
 
@@ -60,6 +61,7 @@ __all__ = [
     "check_pair_count",
     "frame_to_structure",
     "read_frame_atoms",
+    "frame_field",
     "iread_structures",
     "read_structures",
     "write_structures",
@@ -93,6 +95,21 @@ _ALWAYS_RESERVED = {
 #: frame keys that hold numbers; a bare word of a free-text comment (value ``True``) is ignored
 _NUMERIC_LABELS = {"energy", "free_energy", "charge", "efield", "external_field", "stress",
                    "dipole", "magmom"}
+
+
+#: the frame keys with a fixed shape that the reader takes, and what each must hold: a frame
+#: whose value has another shape is refused with one line naming the key and this
+FRAME_KEY_SHAPES = {
+    "efield": (3, "3 numbers (the field, atomic units)"),
+    "external_field": (3, "3 numbers (the field, V/Å)"),
+    "field": (3, "3 numbers"),
+    "dipole": (3, "3 numbers (e·Å)"),
+    "Lattice": (9, "9 numbers (the three cell vectors, Å)"),
+    "stress": (9, "9 numbers (a 3x3 matrix, eV/Å^3)"),
+    "pbc": (3, "3 flags T or F"),
+}
+#: the keys of :data:`FRAME_KEY_SHAPES` that hold a vector of 3 numbers
+_VECTOR_KEYS = ("efield", "external_field", "field", "dipole")
 
 
 class ExtxyzError(StructureError):
@@ -254,6 +271,9 @@ def _parse_frame(text: str, source: str, line: int) -> Atoms:
             f"{source} (line {line}): unknown element symbol {exc.args[0]!r}"
         ) from None
     except Exception as exc:  # ASE raises XYZError, ValueError, IndexError, TypeError
+        shape = _key_shape_problem(text, source)
+        if shape:
+            raise ExtxyzError(shape) from None
         raise ExtxyzError(f"{source} (line {line}): cannot parse the frame: {exc}") from exc
     # a free-text comment line: ASE reads its bare words as flags (``energy`` -> True); labels
     # come only from numeric key=value pairs, so such flags are dropped
@@ -265,7 +285,52 @@ def _parse_frame(text: str, source: str, line: int) -> Atoms:
             del results[key]
         if not results:
             atoms.calc = None
+    if "pbc=" in text.split("\n", 2)[1]:  # ASE takes any text for true ("T T X": periodic)
+        shape = _key_shape_problem(text, source, ("pbc",))
+        if shape:
+            raise ExtxyzError(shape)
+    results = atoms.calc.results if atoms.calc is not None else {}
+    for key in _VECTOR_KEYS:  # ASE reads any length; the cell it checks itself
+        for where in (atoms.info, results):
+            if key in where:
+                _vector(where[key], key, source)
+    if "charge" in atoms.info:
+        _scalar(atoms.info["charge"], "charge", source)
+    _finite_positions(atoms, source)
     return atoms
+
+
+def _key_shape_problem(text: str, source: str, keys: Iterable[str] = tuple(FRAME_KEY_SHAPES)
+                       ) -> str:
+    """The one-line reason (or ``""``) why a key of :data:`FRAME_KEY_SHAPES` on the comment
+    line of a frame's ``text`` has the wrong shape: the diagnosis of a frame ASE could not
+    read (it refuses a ``Lattice`` or ``stress`` of other than 9 numbers, and fails on a
+    ``pbc`` of other than 3 flags, without naming them so)."""
+    lines = text.split("\n", 2)
+    try:
+        values = key_val_str_to_dict_regex(lines[1] if len(lines) > 1 else "")
+    except Exception:  # noqa: BLE001 - a comment line too broken to diagnose: ASE's message
+        return ""
+    for key in keys:
+        size, expected = FRAME_KEY_SHAPES[key]
+        if key not in values:
+            continue
+        value = values[key]
+        tokens = (str(value).split() if isinstance(value, str)
+                  else np.atleast_1d(np.asarray(value)).reshape(-1).tolist())
+        if key == "pbc":
+            ok = len(tokens) in (1, size) and all(str(t) in _PBC_FLAGS for t in tokens)
+        else:
+            ok = len(tokens) == size and not isinstance(value, str)
+        if not ok:
+            if key == "pbc":  # the regex parser gives booleans: shown as the file wrote them
+                value = [{True: "T", False: "F"}.get(t, t) for t in tokens]
+            return f"{source}: '{key}' must be {expected}, got {len(tokens)}: {_shown(value)}"
+    return ""
+
+
+#: the flags ASE reads as ``pbc`` values
+_PBC_FLAGS = {"T", "F", "true", "false", "True", "False", "TRUE", "FALSE"}
 
 
 def read_frame_atoms(path: str | os.PathLike, index: int | str = 0) -> Atoms:
@@ -290,6 +355,17 @@ def read_frame_atoms(path: str | os.PathLike, index: int | str = 0) -> Atoms:
     if n_frames == 0:
         raise ExtxyzError(f"{path}: the file contains no frames")
     raise ExtxyzError(f"{path}: frame {index} requested but the file has {n_frames} frames")
+
+
+def frame_field(atoms: Atoms, source: str) -> np.ndarray | None:
+    """The field (V/Å) a raw frame (:func:`read_frame_atoms`, or any ASE frame) carries:
+    ``external_field`` (V/Å) or the reference convention's ``efield`` (atomic units,
+    :func:`reference_field`); None without either. Errors name ``source``."""
+    if "external_field" in atoms.info:
+        return _vector(atoms.info["external_field"], "external_field", source)
+    if "efield" in atoms.info:
+        return reference_field(atoms.info["efield"], source)
+    return None
 
 
 def frame_to_structure(atoms: Atoms, source: str, convention: str = "auto",
@@ -516,23 +592,34 @@ def _vector(value: object, key: str, source: str) -> np.ndarray:
     try:
         arr = np.asarray(value, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError):
-        raise ExtxyzError(f"{source}: '{key}' must be 3 numbers, got {value!r}") from None
+        raise ExtxyzError(f"{source}: '{key}' must be 3 numbers, got {_shown(value)}") from None
     if arr.shape != (3,):
-        raise ExtxyzError(f"{source}: '{key}' must have 3 components, got {arr.size}: {value!r}")
+        raise ExtxyzError(f"{source}: '{key}' must have 3 components, got {arr.size}:"
+                          f" {_shown(value)}")
     if not np.all(np.isfinite(arr)):
-        raise ExtxyzError(f"{source}: '{key}' contains NaN or infinity: {value!r}")
+        raise ExtxyzError(f"{source}: '{key}' contains NaN or infinity: {_shown(value)}")
     return arr
+
+
+def _shown(value: object) -> str:
+    """A frame value for a one-line message: as the file wrote it (numbers space-separated,
+    at most 12), quoted."""
+    if isinstance(value, np.ndarray) or isinstance(value, (list, tuple)):
+        items = np.asarray(value, dtype=object).reshape(-1).tolist()
+        text = " ".join(str(x) for x in items[:12]) + (" ..." if len(items) > 12 else "")
+        return repr(text)
+    return repr(" ".join(str(value).split())[:120])
 
 
 def _scalar(value: object, key: str, source: str) -> float:
     if isinstance(value, (bool, np.bool_)):
-        raise ExtxyzError(f"{source}: '{key}' must be a number, got {value!r}")
+        raise ExtxyzError(f"{source}: '{key}' must be a number, got {_shown(value)}")
     try:
         out = float(np.asarray(value, dtype=np.float64).reshape(()))
     except (TypeError, ValueError):
-        raise ExtxyzError(f"{source}: '{key}' must be a number, got {value!r}") from None
+        raise ExtxyzError(f"{source}: '{key}' must be a number, got {_shown(value)}") from None
     if not np.isfinite(out):
-        raise ExtxyzError(f"{source}: '{key}' is not finite: {value!r}")
+        raise ExtxyzError(f"{source}: '{key}' is not finite: {_shown(value)}")
     return out
 
 

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from emlpack.nn.neighbors import all_pairs, half_neighbor_list
+from emlpack.nn.neighbors import NeighborListError, all_pairs, half_neighbor_list
 from emlpack.structure import PAIR_NUMBER, Structure
 
 if TYPE_CHECKING:
@@ -150,7 +150,10 @@ def collate(
         positions.append(pos)
         charges.append(s.charges)
         batch.append(np.full(n, b))
-        i, j, shifts = half_neighbor_list(pos, s.cell, s.pbc, cutoff)
+        try:
+            i, j, shifts = half_neighbor_list(pos, s.cell, s.pbc, cutoff)
+        except NeighborListError as exc:
+            raise NeighborListError(f"{s.source}: {exc}") from None
         ei.append(i + offset)
         ej.append(j + offset)
         es.append(shifts)

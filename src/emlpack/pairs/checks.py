@@ -31,6 +31,9 @@ MAX_CORE_DISTANCE = 2.0
 #: two pairs closer than this (Å) have collapsed onto one point: relaxations and optimisations
 #: stop there (the direction of their distance is undefined; docs/relaxation.md)
 COLLAPSE_DISTANCE = 1e-3
+#: a smallest pair curvature above minus this (eV/Å^2) is a flat valley, not a saddle (the
+#: relaxation's ``RelaxOptions.flat_curvature`` and the property commands' check of a result)
+FLAT_CURVATURE = 1e-3
 
 
 def _pair_distances(pairs: np.ndarray, cell: np.ndarray | None, pbc: bool) -> np.ndarray:

@@ -89,6 +89,7 @@ from emlpack.nn.short_range import FrozenAnyDtype, HeldEdges, HoldsEdges, Tabula
 from emlpack.nn.short_range.hessian import short_range_position_hessian
 from emlpack.pairs.checks import (
     COLLAPSE_DISTANCE,
+    FLAT_CURVATURE,
     MAX_CORE_DISTANCE,
     MIN_PAIR_DISTANCE,
     check_pairs,
@@ -221,7 +222,7 @@ class RelaxOptions:
     #: (:func:`~emlpack.pairs.checks.check_pairs`): the azimuth of a triple bond's pairs is
     #: flat (cylindrical symmetry), and a relaxation stopped at ``fmax`` = 1e-4 eV/Å sits
     #: anywhere along it (measured: docs/relaxation.md)
-    flat_curvature: float = 1e-3
+    flat_curvature: float = FLAT_CURVATURE
     #: a relaxation that ends at a saddle (converged, its only failure a pair curvature at or
     #: below ``-flat_curvature``; e.g. a symmetric start whose gradient keeps the symmetry) is
     #: displaced along the softest mode of the exact pair Hessian, both ways, and relaxed

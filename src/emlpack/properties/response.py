@@ -12,6 +12,16 @@ remaining variables ``y``. With the sign of the field term (``E_field = -mu . F`
   (clamped cores, the paper's main text) or pairs + cores (rigid-body motions projected out);
 * Born-Oppenheimer core Hessian ``S_cc`` and dipole derivatives ``dmu/dR = -S_Fc`` (pairs
   eliminated), for IR spectra (:mod:`emlpack.properties.ir`);
+* with the pairs eliminated at clamped cores, the rotations that leave every core in place
+  (:func:`emlpack.geometry.core_fixed_rotations`: a linear molecule's about its axis) are
+  projected out of the pairs' space where the Hessian is flat along them (:func:`pair_basis`):
+  at relaxed pairs they are symmetries of the energy, exact zero modes of the pair Hessian,
+  which the inverse turns into noise of any size and sign (linear hexatriyne with mini-eqm7:
+  clamped isotropic polarizabilities of 232 to 6306 bohr³ over the members without the
+  projection, 100 to 128 with it; docs/response.md);
+* :func:`pair_minimum_problem` says when a result is not at a minimum of the pairs (an
+  imaginary pair mode, a negative clamped polarizability eigenvalue): the commands leave such
+  a member out of their mean;
 * crystals (``A`` = cell, rows = lattice vectors; ``V`` = volume; ``x`` = fractional
   coordinates, with uniform translations projected out):
 
@@ -34,6 +44,7 @@ import numpy as np
 
 from emlpack.geometry import (
     VoigtViews,
+    core_fixed_rotations,
     internal_basis,
     rigid_body_modes,
     schur_complement,
@@ -41,6 +52,7 @@ from emlpack.geometry import (
     voigt_stiffness,
 )
 from emlpack.nn.potential import EMLP
+from emlpack.pairs.checks import FLAT_CURVATURE
 from emlpack.properties.hessian import extended_hessian
 from emlpack.structure import Structure
 from emlpack.units import (
@@ -61,12 +73,42 @@ def _molecule_layout(structure: Structure) -> tuple[np.ndarray, np.ndarray, np.n
     return np.arange(3 * nc), np.arange(3 * nc, 3 * n), np.arange(3 * n, 3 * n + 3)
 
 
+#: cores within this fraction of the molecule's size of one line count as a linear molecule
+#: for :func:`pair_basis` (a DFT optimum holds them on the line to ~1e-5 Å, not exactly)
+LINEAR_TOLERANCE = 1e-3
+#: a clamped polarizability that rests for more than this fraction on pair modes within the
+#: flat curvature (:func:`pair_minimum_problem`) is indeterminate
+FLAT_SHARE = 0.1
+
+
+def pair_basis(hessian: np.ndarray, structure: Structure,
+               flat_curvature: float = FLAT_CURVATURE) -> np.ndarray | None:
+    """Orthonormal columns (3P) of the pair displacements a clamped-core response relaxes: all
+    but the rotations that leave every core in place
+    (:func:`~emlpack.geometry.core_fixed_rotations`, cores on a line within
+    :data:`LINEAR_TOLERANCE`: the rotation about a linear molecule's axis) along which the
+    molecular extended ``hessian`` is flat (curvature within ``flat_curvature``, eV/Å²:
+    relaxed pairs, where such a rotation is a zero mode); None when there are none (crystals,
+    molecules with three cores off a line)."""
+    if structure.pbc or structure.n_pairs == 0:
+        return None
+    rotations = core_fixed_rotations(structure.positions, structure.pairs, LINEAR_TOLERANCE)
+    if not rotations.shape[1]:
+        return None
+    pairs = _molecule_layout(structure)[1]
+    h_pp = hessian[np.ix_(pairs, pairs)]
+    w, v = np.linalg.eigh(rotations.T @ (0.5 * (h_pp + h_pp.T)) @ rotations)
+    flat = rotations @ v[:, np.abs(w) <= flat_curvature]
+    return internal_basis(flat) if flat.shape[1] else None
+
+
 def polarizability_from_hessian(
     hessian: np.ndarray, structure: Structure, relax_cores: bool = False
 ) -> np.ndarray:
     """Static polarizability alpha_ij = -d2E/dF_i dF_j (e·Å²/V) of a molecule.
 
-    ``relax_cores=False``: pairs relaxed at clamped cores (electronic, the paper's main text);
+    ``relax_cores=False``: pairs relaxed at clamped cores (electronic, the paper's main text;
+    a linear molecule's pairs without their rotation about its axis, :func:`pair_basis`);
     ``True``: cores relaxed as well, rigid-body motions of the whole molecule projected out
     (electronic + vibrational); the geometry should then be a minimum.
     """
@@ -78,19 +120,74 @@ def polarizability_from_hessian(
         coords = np.concatenate([cores, pairs])
         basis = internal_basis(rigid_body_modes(structure.all_positions))
         return -schur_complement(hessian, field, coords, basis)
-    return -schur_complement(hessian, field, pairs)
+    return -schur_complement(hessian, field, pairs, pair_basis(hessian, structure))
 
 
 def born_oppenheimer_blocks(
     hessian: np.ndarray, structure: Structure
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pairs eliminated: core Hessian (3Nc, 3Nc) eV/Å², dipole derivatives dmu_a/dR_ib
-    (3, 3Nc) e, and clamped-core polarizability (3, 3) e·Å²/V, of a molecule."""
+    """Pairs eliminated (:func:`pair_basis`): core Hessian (3Nc, 3Nc) eV/Å², dipole derivatives
+    dmu_a/dR_ib (3, 3Nc) e, and clamped-core polarizability (3, 3) e·Å²/V, of a molecule."""
     cores, pairs, field = _molecule_layout(structure)
     keep = np.concatenate([cores, field])
-    s = schur_complement(hessian, keep, pairs)
+    s = schur_complement(hessian, keep, pairs, pair_basis(hessian, structure))
     nc = len(cores)
     return s[:nc, :nc], -s[nc:, :nc], -s[nc:, nc:]
+
+
+def pair_minimum_problem(hessian: np.ndarray, structure: Structure,
+                         flat_curvature: float = FLAT_CURVATURE) -> str:
+    """Why the pairs of ``structure`` are not at a well-defined energy minimum at its cores,
+    read from its extended Hessian (molecule or crystal layout), or ``""`` when they are:
+
+    * an imaginary pair mode: a pair-Hessian eigenvalue at or below ``-flat_curvature``
+      (eV/Å², Cartesian; a linear molecule's rotation about its axis excluded,
+      :func:`pair_basis`);
+    * a negative eigenvalue of the clamped-core polarizability (the pairs' response to a
+      field, positive definite at a minimum): a near-zero negative pair curvature that passes
+      as flat still makes it negative, and every response built on it meaningless;
+    * a clamped polarizability that rests for more than :data:`FLAT_SHARE` on pair modes
+      within the flat curvature (``sum |c_k|^2 / |lambda_k|`` over the modes, ``c_k`` their
+      coupling to the field): there the curvature's size and sign are not determined, so
+      neither is the response (e.g. the pairs' near-free rotation about a nearly linear
+      molecule's axis).
+    """
+    if structure.n_pairs == 0:
+        return ""
+    h = 0.5 * (hessian + hessian.T)
+    nc, n = structure.n_cores, structure.n_cores + structure.n_pairs
+    pairs = np.arange(3 * nc, 3 * n)
+    field = (np.arange(3 * n + 9, 3 * n + 12) if structure.pbc
+             else np.arange(3 * n, 3 * n + 3))
+    h_pp, h_fp = h[np.ix_(pairs, pairs)], h[np.ix_(field, pairs)]
+    if structure.pbc:  # fractional -> Cartesian: r = s A, so H_rr = A^-1 H_ss A^-T per block
+        t = np.kron(np.eye(structure.n_pairs), np.linalg.inv(structure.cell))
+        h_pp, h_fp = t @ h_pp @ t.T, h_fp @ t.T
+    basis = pair_basis(h, structure)
+    if basis is not None:
+        h_pp, h_fp = basis.T @ h_pp @ basis, h_fp @ basis
+    lam, modes = np.linalg.eigh(h_pp)
+    reasons = []
+    if lam[0] <= -flat_curvature:
+        reasons.append(f"imaginary pair mode: lowest pair-Hessian eigenvalue {lam[0]:.3g}"
+                       " eV/Å^2 (the pairs are at a saddle, not a minimum)")
+    coupling = np.sum((h_fp @ modes) ** 2, axis=0)  # |c_k|^2, (e)^2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        parts = coupling / np.abs(lam)
+        alpha = (h_fp @ modes) @ ((h_fp @ modes) / lam).T  # clamped alpha, e·Å²/V
+    a = np.linalg.eigvalsh(0.5 * (alpha + alpha.T)) if np.all(np.isfinite(alpha)) else None
+    if a is None or a[0] < -1e-8 * abs(a[-1]):
+        low = "infinite" if a is None else f"{a[0] * COULOMB_EV_A * POLARIZABILITY_A3_IN_BOHR3:.3g}"
+        reasons.append(f"negative polarizability eigenvalue {low} bohr^3 (the pairs are not"
+                       " at a minimum)")
+    else:
+        flat = np.abs(lam) <= flat_curvature
+        share = float(np.sum(parts[flat]) / np.sum(parts)) if np.sum(parts) > 0 else 0.0
+        if share > FLAT_SHARE:
+            reasons.append(f"the polarizability rests {share:.0%} on pair modes flatter than"
+                           f" {flat_curvature:g} eV/Å^2 (lowest {np.min(np.abs(lam)):.2g}):"
+                           " indeterminate, the pairs have no well-defined minimum")
+    return "; ".join(reasons)
 
 
 @dataclass
@@ -145,13 +242,17 @@ def molecule_response(
     """Dipole (sum q r, e·Å) and polarizabilities of ``structure`` at its given geometry
     (relax the pairs first; relax the cores too for ``relax_cores``)."""
     _, h = extended_hessian(model, structure)
-    h = h.numpy()
+    return molecule_response_from_hessian(h.numpy(), structure, relax_cores)
+
+
+def molecule_response_from_hessian(hessian: np.ndarray, structure: Structure,
+                                   relax_cores: bool = True) -> MoleculeResponse:
+    """:func:`molecule_response` from the molecular extended Hessian of ``structure``."""
     return MoleculeResponse(
         dipole=structure.dipole(),
-        polarizability=polarizability_from_hessian(h, structure),
-        polarizability_relaxed=(
-            polarizability_from_hessian(h, structure, relax_cores=True) if relax_cores else None
-        ),
+        polarizability=polarizability_from_hessian(hessian, structure),
+        polarizability_relaxed=(polarizability_from_hessian(hessian, structure, relax_cores=True)
+                                if relax_cores else None),
     )
 
 

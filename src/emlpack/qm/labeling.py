@@ -17,7 +17,6 @@ import csv
 import logging
 import os
 import re
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -482,7 +481,7 @@ def run_labeling(
         on_stored: called with the store after each stored record or failure; returning
             True stops the run (tasks in flight are dropped, finished ones are kept).
     """
-    from tqdm import tqdm
+    from emlpack.progress import progress as progress_bar
 
     t0 = time.perf_counter()
     check_labeling_dependencies(recipe, workers, scheduler)  # before the store is opened
@@ -534,7 +533,7 @@ def run_labeling(
     if threads is None and executor.uses_dask:
         threads = executor.threads_per_task
     prep_dir = Path(prep_dir) if prep_dir is not None else Path(str(store_path) + ".prep")
-    bar = tqdm(total=total, desc="label", unit="conf", disable=not progress, file=sys.stderr)
+    bar = progress_bar(total=total, desc="label", unit="conf", enabled=progress)
     waiting = list(todo)  # molecules still to prepare, in order
     in_flight = {"prep": 0}
     try:

@@ -8,7 +8,6 @@ Failed frames are left out of the output and listed in ``OUT.failed.yaml``; the 
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -141,15 +140,15 @@ def relabel(
     ``workers > 0`` runs the frames on a Dask ``LocalCluster``; ``scheduler`` on an existing
     Dask cluster; otherwise in this process.
     """
-    from tqdm import tqdm
+    from emlpack.progress import progress as progress_bar
 
     frames = read_reference_frames(in_path, index=index)
     lab = labeler or PySCFLabeler(parse_level(level), boys_starts=boys_starts)
     report = RelabelReport(n_frames=len(frames))
     out_frames: list[Structure] = []
     results = _results_in_order(frames, lab, workers, scheduler)
-    for frame, res in tqdm(zip(frames, results, strict=False), total=len(frames),
-                           desc="relabel", unit="frame", disable=not progress, file=sys.stderr):
+    for frame, res in progress_bar(zip(frames, results, strict=False), total=len(frames),
+                                   desc="relabel", unit="frame", enabled=progress):
         if not res.ok:
             report.n_failed += 1
             report.failures.append({"source": frame.source, "reason": res.error})

@@ -58,12 +58,17 @@ def load_for_evaluation(
 
 
 def static_errors(model: EMLP, reference: HydrideReference | ConstantReference,
-                  structures: Sequence[Structure], batch_size: int = 32) -> dict:
+                  structures: Sequence[Structure], batch_size: int = 32,
+                  progress: bool = False) -> dict:
     """Per-quantity arrays of predictions, targets and field-free targets."""
+    from emlpack.progress import progress as progress_bar
+
     c = model.config
     out = {k: [] for k in ("e_pred", "e_true", "f_pred", "f_true", "f_free",
                            "p_pred", "p_true", "p_free")}
-    for k in range(0, len(structures), batch_size):
+    chunks = range(0, len(structures), batch_size)
+    for k in progress_bar(chunks, desc="static errors", unit="batch", enabled=progress,
+                          leave=False):
         chunk = structures[k:k + batch_size]
         batch = make_batch(chunk, reference, c.cutoff, c.gcut, torch.float64)
         pred = predict(model, batch, reference, stress=False, create_graph=False)
@@ -97,15 +102,15 @@ def dynamic_errors(model: EMLP, reference: HydrideReference | ConstantReference,
                    structures: Sequence[Structure], batch_size: int = 16,
                    max_pair_shift: float = 0.5, progress: bool = False) -> dict:
     """Relax the pairs of every structure; errors at the relaxed pairs and the failure rate."""
-    from tqdm import tqdm
-
     from emlpack.pairs.relax import relax_pairs
+    from emlpack.progress import progress as progress_bar
 
     c = model.config
     e_err, f_err, d_err, d_true, e_true, f_true = [], [], [], [], [], []
     failures, records = [], []
     chunks = range(0, len(structures), batch_size)
-    for k in tqdm(chunks, desc="relaxing pairs", disable=not progress, leave=False):
+    for k in progress_bar(chunks, desc="relaxing pairs", unit="batch", enabled=progress,
+                          leave=False):
         chunk = structures[k:k + batch_size]
         results = relax_pairs(model, chunk)
         relaxed, kept = [], []
@@ -157,7 +162,7 @@ def evaluate(model: EMLP, reference: HydrideReference | ConstantReference,
              structures: Sequence[Structure], dynamic: bool = True, progress: bool = False,
              max_pair_shift: float = 0.5) -> tuple[dict, dict]:
     """``(metrics, arrays)`` of one model on ``structures`` (units: eV, Å, Debye)."""
-    a = static_errors(model, reference, structures)
+    a = static_errors(model, reference, structures, progress=progress)
     metrics = {
         "n_structures": len(structures),
         "static": {
@@ -286,8 +291,12 @@ def evaluate_models(model_paths: Sequence[str | Path], data_path: str | Path,
     structures, _ = load_data(data_path)
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
+    from emlpack.progress import progress as progress_bar
+
     results = []
-    for k, path in enumerate(model_paths):
+    models = progress_bar(list(enumerate(model_paths)), desc="models", unit="model",
+                          enabled=progress and len(model_paths) > 1)
+    for k, path in models:
         model, reference, meta = load_for_evaluation(path)
         chosen = select_structures(structures, meta, data_path, subset)
         if max_structures:

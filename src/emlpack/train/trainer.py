@@ -39,7 +39,6 @@ import logging
 import math
 import os
 import shutil
-import sys
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
@@ -448,14 +447,15 @@ class Trainer:
                 + (" *" if improved else ""))
 
     def _train_epoch(self) -> dict:
-        from tqdm import tqdm
+        from emlpack.progress import progress as progress_bar
 
         self.model.train()
         sums = torch.zeros(len(TERMS) + 3, dtype=torch.float64)
         batches = self._loader(self.epoch)
         progress = self.cfg["output"]["progress"] and self.rank == 0
-        bar = tqdm(batches, total=self.steps_per_epoch, desc=f"epoch {self.epoch + 1}",
-                   disable=not progress, leave=False, file=sys.stderr)
+        # off a terminal the epoch's own log line is its progress
+        bar = progress_bar(batches, total=self.steps_per_epoch, desc=f"epoch {self.epoch + 1}",
+                           unit="batch", enabled=progress, leave=False, lines=False)
         for batch in bar:
             batch = batch.to(self.device)
             pred = predict(self.ddp, batch, self.reference)

@@ -57,6 +57,7 @@ from emlpack.units import ANGSTROM_IN_BOHR, EV_PER_A3_IN_GPA, HARTREE
 if TYPE_CHECKING:
     from collections.abc import Iterable, Sequence
 
+    from emlpack.progress import progress as progress_bar
     from emlpack.qm.labeling import LabelingSummary
 
 
@@ -231,10 +232,6 @@ def label_into_store(
     ``settings.n_processes`` MPI processes) or on the cluster at ``scheduler``.
     Returns a :class:`emlpack.qm.labeling.LabelingSummary`.
     """
-    import sys
-
-    from tqdm import tqdm
-
     from emlpack.data.store import DatasetStore
     from emlpack.qm.executor import Executor
     from emlpack.qm.labeling import LabelingSummary
@@ -257,7 +254,7 @@ def label_into_store(
     todo = [it for it in items if it[0] not in done]
     summary.n_skipped_done = len(items) - len(todo)
     executor = Executor(workers, scheduler)
-    bar = tqdm(total=len(todo), desc="cp2k", unit="conf", disable=not progress, file=sys.stderr)
+    bar = progress_bar(total=len(todo), desc="cp2k", unit="conf", enabled=progress)
     try:
         for key, structure, stress in todo:
             executor.submit(label_task, structure, settings, bool(stress), key, workdir, tag=key)
