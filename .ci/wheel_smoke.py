@@ -215,6 +215,10 @@ class Smoke:
         self.works(["ir", "mini-eqm7", "--smiles", "O", "-o", "ir_smiles.json", "--quiet"],
                    lambda out: _json_check(w / "ir_smiles.json",
                                            lambda d: len(d["frequencies_cm-1"]) == 3))
+        self.works(["raman", "mini-eqm7", "--smiles", "C1CN1", "-o", "raman.json", "--plot",
+                    "raman.png", "--quiet"], lambda out: _json_check(
+                        w / "raman.json", lambda d: len(d["activities_A4_per_amu"]) == 18
+                        and (w / "raman.png").exists()))
         self.works(["polarizability", "mini-eqm7", str(water), "-o", "pol.json", "--quiet"],
                    lambda out: _json_check(w / "pol.json", lambda d: len(d) > 3))
         self.works(["optimize", "mini-eqm7", str(water), "-o", "opt.xyz", "--quiet"],
