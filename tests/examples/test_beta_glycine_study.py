@@ -109,10 +109,16 @@ def test_study_runs_end_to_end_and_resumes(tmp_path, fake):
     import sys
 
     sys.path.insert(0, str(ROOT / "examples" / "beta_glycine"))
+    before = {k: sys.modules.get(k) for k in ("run_study", "campaign_job")}
     try:
         import campaign_job
-    finally:
+    finally:  # no "run_study" left behind for the eqm7 scripts of the same name
         sys.path.pop(0)
+        for k, v in before.items():
+            if v is None:
+                sys.modules.pop(k, None)
+            else:
+                sys.modules[k] = v
     study = study_mod.Study(cfg, labeler=labeler, log=lines.append)
     with DatasetStore(tmp_path / "run" / "labels.h5", "a") as store:
         campaign_job.Exporter(study, 0.0, False, "test").flush(store)

@@ -57,7 +57,6 @@ from emlpack.units import ANGSTROM_IN_BOHR, EV_PER_A3_IN_GPA, HARTREE
 if TYPE_CHECKING:
     from collections.abc import Iterable, Sequence
 
-    from emlpack.progress import progress as progress_bar
     from emlpack.qm.labeling import LabelingSummary
 
 
@@ -254,6 +253,8 @@ def label_into_store(
     todo = [it for it in items if it[0] not in done]
     summary.n_skipped_done = len(items) - len(todo)
     executor = Executor(workers, scheduler)
+    from emlpack.progress import progress as progress_bar
+
     bar = progress_bar(total=len(todo), desc="cp2k", unit="conf", enabled=progress)
     try:
         for key, structure, stress in todo:
