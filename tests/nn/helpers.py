@@ -11,6 +11,7 @@ from scipy.special import erfc
 from torch import nn
 
 from emlpack.nn import EMLP, ModelConfig
+from emlpack.nn.neighbors import half_neighbor_list
 from emlpack.nn.scatter import segment_sum
 from emlpack.nn.short_range import families, register_family
 from emlpack.nn.short_range.common import cosine_cutoff, edge_lengths, shifted_softplus
@@ -301,6 +302,37 @@ def kink_gap(model: EMLP, structure: Structure) -> float:
     r = d.norm(dim=-1).numpy()
     c = model.config
     return float(np.min(np.abs(r[:, None] - [c.cutoff - c.cutoff_transition, c.cutoff])))
+
+
+def _edge_lengths_by_key(structure: Structure, cutoff: float) -> dict[tuple, float]:
+    """Lengths (Å) of the edges shorter than ``cutoff``, keyed by ``(i, j, *shift)`` in the
+    orientation whose key is smaller (each unordered edge once, whichever way round)."""
+    p = structure.all_positions
+    i, j, shifts = half_neighbor_list(p, structure.cell, structure.pbc, cutoff)
+    d = p[j] - p[i] + (shifts @ structure.cell if structure.pbc else 0.0)
+    return {min((int(a), int(b), *map(int, c)), (int(b), int(a), *map(int, -c))): float(r)
+            for a, b, c, r in zip(i, j, shifts, np.linalg.norm(d, axis=1), strict=True)}
+
+
+def crossed_kinks(model: EMLP, reference: Structure, structures) -> list[str]:
+    """The edges whose length crosses a kink of the cosine cutoff (its second derivative jumps
+    at ``cutoff - transition`` and at ``cutoff``) between ``reference`` and any of
+    ``structures`` (the same particles, e.g. relaxed at a finite field or strain); one line
+    each. The energy is only C1 across a kink, so a finite-difference stencil of a response
+    (a derivative of forces or of relaxed coordinates) that straddles one measures a mean of
+    two one-sided Hessians, not the derivative at ``reference``."""
+    c = model.config
+    kinks = (c.cutoff - c.cutoff_transition, c.cutoff)
+    reach = c.cutoff + 0.5  # edges outside the cutoff that may move in
+    start = _edge_lengths_by_key(reference, reach)
+    out = []
+    for k, s in enumerate(structures):
+        lengths = _edge_lengths_by_key(s, reach)
+        for key, r0 in start.items():
+            r = lengths.get(key, math.inf)
+            out += [f"structure {k}: edge {key} {r0:.6f} -> {r:.6f} Å crosses {kink} Å"
+                    for kink in kinks if (r0 - kink) * (r - kink) <= 0.0]
+    return out
 
 
 def fd_forces(model: EMLP, structure: Structure, particles, h: float = 2e-4, part="energy"):
