@@ -119,6 +119,35 @@ def test_stress_matches_finite_strain(name, family):
         np.testing.assert_allclose(out["virial"], out["virial"].T, atol=1e-12 * max(scale, 1))
 
 
+@pytest.mark.parametrize("family", FAMILIES)
+@pytest.mark.parametrize("length", [3.5, 4.0])
+def test_energy_and_forces_continuous_as_an_image_edge_crosses_a_kink(family, length):
+    """A pair moved along an image edge (core 0 - pair 13 of the neighbouring cell) across
+    ``cutoff - transition`` (3.5 Å) or the cutoff (4 Å, where the neighbour list rebuilt at each
+    point drops the edge): the energy is C1 there. The pair force jumps by O(delta) (a jump
+    of the force itself would not shrink with delta), and the energy difference across equals
+    the trapezoid of the forces to O(delta^2) (the cutoff's second derivative jumps there)."""
+    model = random_model(family=family)
+    s = water_crystal()
+    pos, q, shift = s.all_positions, 13, np.array([-1, 0, 0]) @ s.cell
+    u = pos[q] + shift - pos[0]
+    u /= np.linalg.norm(u)
+
+    def at(r):
+        p = pos.copy()
+        p[q] = pos[0] - shift + r * u  # the edge (0, 13, -1 0 0) of length r
+        out = model.evaluate(s.copy(pairs=p[s.n_cores :]), stress=False)
+        return out["energy"], out["pair_forces"][q - s.n_cores] @ u
+
+    jumps, misses = {}, {}
+    for delta in (1e-4, 1e-5):
+        (e0, f0), (e1, f1) = at(length - delta), at(length + delta)
+        jumps[delta] = abs(f1 - f0)
+        misses[delta] = abs(e1 - e0 + (f0 + f1) * delta) / abs(e1 - e0)
+    assert 8.0 < jumps[1e-4] / jumps[1e-5] < 12.0, jumps  # measured: 10.00 (+-3e-4)
+    assert misses[1e-5] < 1e-4, misses  # measured: <= 7e-6
+
+
 def test_stress_does_not_depend_on_the_field():
     """Same geometry, field on or off: the stress (field part excluded) is identical; the
     virial including the field differs by exactly -mu (x) E (not symmetric)."""
