@@ -39,8 +39,8 @@ def kink_free_stencil(model, s, step, at):
     state that a straddling stencil does not measure. Measured (issue 48): PaiNN's relaxed
     water crystal has edges 2.4e-3 Å inside 3.5 Å and 2.6e-3 Å beyond 4 Å; with its cores
     relaxed, a field of 2e-3 V/Å moves one of them by 5.4e-3 Å, and the stencil at 2e-3 V/Å
-    missed eps by 3e-4 relative, at 1e-3 by -1e-4 (not the stencil's h^4 error); with a C3
-    cutoff in its place, the same crossings, it agrees to the tolerance below."""
+    missed eps - I by -3e-4 of its largest element, at 1e-3 by +1e-4 (not the stencil's h^4
+    error); with a C3 cutoff in its place (the same crossings) it agrees to the tolerance."""
     for _ in range(MAX_HALVINGS + 1):
         points = [at(o * step) for o in STENCIL_OFFSETS]
         if not crossed_kinks(model, s, [p[0] for p in points]):
