@@ -250,14 +250,14 @@ def test_relaxation_methane(small_model, bo):
 def test_relaxation_ethanol_same_minimum(small_model, bo):
     """C2H6O has a very soft mode (0.0017 eV/Å^2): compare energies and the minimum predicted
     by one Newton step from the reference's result, not raw positions at 1e-4 Å."""
-    from emlpack.pairs.relax import _PairProblem
+    from emlpack.pairs.relax.problem import PairProblem
 
     p = "bo08_"
     r = relax_pairs(small_model, bo_structure(bo, p), fmax=1e-7)[0]
     assert r.max_force < 1e-7
     assert abs(r.energy - bo[p + "energy"]) < 1e-7
     ref = bo_structure(bo, p).copy(pairs=bo[p + "relaxed_pair_positions"])
-    prob = _PairProblem(small_model, small_model.graph(ref))
+    prob = PairProblem(small_model, small_model.graph(ref))
     x = prob.g.positions[prob.pair_idx]
     _, grad = prob.energy_gradient(x)
     h = prob.hessians(x)[0]

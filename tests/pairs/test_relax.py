@@ -182,14 +182,14 @@ def test_fast_pair_hessians_equal_the_reverse_passes_for_every_family(family):
     reverse pass of the whole energy per column, off the minimum, molecule and crystal."""
     import torch
 
-    from emlpack.pairs.relax import _PairProblem
+    from emlpack.pairs.relax.problem import PairProblem
     from tests.nn.helpers import random_model, water_crystal, water_molecule
 
     model = random_model(family=family)
     for p in model.parameters():
         p.requires_grad_(False)
     g = model.graph([water_molecule(), water_crystal()], dtype=torch.float64)
-    prob = _PairProblem(model, g)
+    prob = PairProblem(model, g)
     assert (prob.held is not None) == (family == "schnet")
     x = g.positions[prob.pair_idx].clone()
     x = x + 0.05 * torch.sin(torch.arange(x.numel(), dtype=x.dtype)).reshape(x.shape)

@@ -10,17 +10,13 @@ import numpy as np
 import pytest
 import torch
 
-import emlpack.pairs.relax as relax_module
+import emlpack.pairs.relax.problem as problem_module
 from emlpack.io import read_structures
 from emlpack.nn.checkpoint import load_model as load_checkpoint
 from emlpack.nn.electrostatics import coulomb_molecular, ewald_reciprocal
-from emlpack.pairs.relax import (
-    _BondRotations,
-    _CoulombPairs,
-    _PairProblem,
-    pair_hessian,
-    relax_pairs,
-)
+from emlpack.pairs.relax import pair_hessian, relax_pairs
+from emlpack.pairs.relax.bond_rotations import BondRotations
+from emlpack.pairs.relax.problem import CoulombPairs, PairProblem
 from emlpack.structure import Structure
 from tests.conftest import shared_path
 from tests.legacy.test_reference_fixtures import load_model
@@ -64,10 +60,10 @@ def test_analytic_electrostatic_pair_hessian_equals_autograd(small):
     mol = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), index="60:62")
     crystal = read_structures(shared_path("data/beta_glycine_pbe_wannier.xyz"), index="0:1")
     g = small.graph(mol + crystal, dtype=torch.float64)
-    prob = _PairProblem(small, g)
+    prob = PairProblem(small, g)
     x = g.positions[prob.pair_idx].clone()
     x = x + 0.05 * torch.sin(torch.arange(x.numel(), dtype=x.dtype)).reshape(x.shape)
-    grad, hess, energy = _CoulombPairs(small, prob)(x, energy=True)
+    grad, hess, energy = CoulombPairs(small, prob)(x, energy=True)
     e_ref, g_ref, h_ref = _electrostatic_reference(small, g, prob, x)
     assert torch.abs(energy - e_ref).max() <= 1e-12 * torch.abs(e_ref).max()
     assert torch.abs(grad - g_ref).max() <= 1e-10 * torch.abs(g_ref).max()
@@ -158,7 +154,7 @@ def test_bond_rotation_steps():
     pairs = np.array([[0.6, 0.35, 0.0], [0.6, 0.05, 0.0]] + far)
     mol = Structure(np.array([6, 6, 1, 1]), cores, pairs)
     x = torch.as_tensor(pairs)
-    turn = _BondRotations([mol], x)
+    turn = BondRotations([mol], x)
     tangential = torch.zeros_like(x)
     tangential[:2, 2] = 0.1
     new = turn(x, tangential).numpy()
@@ -169,7 +165,7 @@ def test_bond_rotation_steps():
     small_step[0] = torch.tensor([1e-4, -2e-4, 3e-4])
     assert torch.abs(turn(x, small_step) - (x + small_step)).max() < 1e-6  # |s|^2 / rho
     crystal = Structure(np.array([6, 6, 1, 1]), cores, pairs, cell=12.0 * np.eye(3), pbc=True)
-    straight = _BondRotations([crystal], x)(x, tangential)
+    straight = BondRotations([crystal], x)(x, tangential)
     assert torch.equal(straight, x + tangential)
 
 
@@ -187,7 +183,7 @@ def test_collective_rotation_turns_a_bonds_pairs_together():
     pairs = np.array(ring + [[5.5, 0.0, 0.6], [6.5, 0.0, 0.1]])
     mol = Structure(np.array([6, 6, 1, 1]), cores, pairs)
     x = torch.as_tensor(pairs)
-    turn = _BondRotations([mol], x)
+    turn = BondRotations([mol], x)
     arc = 0.05
     step = turn.collective(x, arc, 2)
     assert not torch.any(step[3:])
@@ -294,8 +290,8 @@ def test_held_core_core_filters_equal_plain_evaluation(which, small, trained):
     structures = mol + crystal if set(model.config.elements) >= {1, 6, 7, 8} else mol
     with _frozen(model):
         g = model.graph(structures, dtype=torch.float64)
-        plain = _PairProblem(model, g, hold_edges=False)
-        held = _PairProblem(model, g)
+        plain = PairProblem(model, g, hold_edges=False)
+        held = PairProblem(model, g)
         assert plain.held is None and held.held is not None
         assert 0 < len(held.held.i) < len(g.edge_i)
         x = g.positions[plain.pair_idx].clone()
@@ -318,10 +314,10 @@ def test_tabulated_filters_reach_the_network_minima(trained, monkeypatch):
     crystal = read_structures(shared_path("data/beta_glycine_pbe_wannier.xyz"), index="0:1")
     with _frozen(trained):
         g_small = trained.graph(mol[:1], dtype=torch.float64)
-        assert _PairProblem(trained, g_small, filter_table=1e-3).held_tabulated.table is None
-        monkeypatch.setattr(relax_module, "TABLE_MIN_EDGES", 0)
+        assert PairProblem(trained, g_small, filter_table=1e-3).held_tabulated.table is None
+        monkeypatch.setattr(problem_module, "TABLE_MIN_EDGES", 0)
         g = trained.graph(mol + crystal, dtype=torch.float64)
-        network, table = _PairProblem(trained, g), _PairProblem(trained, g, filter_table=1e-3)
+        network, table = PairProblem(trained, g), PairProblem(trained, g, filter_table=1e-3)
         assert table.held_tabulated.table is not None and table.held.table is None
         x = g.positions[network.pair_idx].clone()
         x = x + 0.05 * torch.sin(torch.arange(x.numel(), dtype=x.dtype)).reshape(x.shape)
@@ -365,7 +361,7 @@ def test_closest_pair_distance_uses_the_minimum_image():
                        np.array([[0.37, 0.0, 0.0]]))
     model = load_model("small")
     g = model.graph([crystal, molecule, single], dtype=torch.float64)
-    prob = _PairProblem(model, g, hold_edges=False)
+    prob = PairProblem(model, g, hold_edges=False)
     d = prob.closest_pair_distance(g.positions[prob.pair_idx])
     np.testing.assert_allclose(d[:2].numpy(), [0.2, 0.3], atol=1e-12)
     assert torch.isinf(d[2])
@@ -395,7 +391,7 @@ def test_kept_graph_products_equal_fresh_ones_and_the_davidson_start_block(train
     results = relax_pairs(trained, starts)
     g = trained.graph([s.copy(pairs=r.pairs) for s, r in zip(starts, results, strict=True)],
                       dtype=torch.float64)
-    prob = _PairProblem(trained, g)
+    prob = PairProblem(trained, g)
     x = g.positions[prob.pair_idx].clone()
     v = torch.randn(3, *x.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     product = prob.hvp_operator(x)
@@ -429,7 +425,7 @@ def test_fast_pair_hessians_equal_the_reverse_passes(small):
     mol = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"), index="0:600:300")
     crystal = read_structures(shared_path("data/beta_glycine_pbe_wannier.xyz"), index="0:1")
     g = small.graph(mol + crystal, dtype=torch.float64)
-    prob = _PairProblem(small, g)
+    prob = PairProblem(small, g)
     assert len(set(g.n_pairs.tolist())) == 3
     x = g.positions[prob.pair_idx].clone()
     x = x + 0.05 * torch.sin(torch.arange(x.numel(), dtype=x.dtype)).reshape(x.shape)
@@ -445,7 +441,7 @@ def test_exact_pair_hessians_equal_autograd(trained):
     torch.autograd's full Hessian of the summed energy, block by block."""
     starts = _starts("::150")
     g = trained.graph(starts, dtype=torch.float64)
-    prob = _PairProblem(trained, g)
+    prob = PairProblem(trained, g)
     x = g.positions[prob.pair_idx].clone()
     h = prob.hessians(x)
     full = torch.autograd.functional.hessian(lambda y: prob.energy(y).sum(), x)
