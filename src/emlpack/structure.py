@@ -63,6 +63,9 @@ class Structure:
         forces: reference core forces (eV/Å), if any.
         pair_forces: reference electron-pair forces (eV/Å), if any (zero for DFT centres).
         stress: reference stress (eV/Å^3, ASE sign, 3x3), if any.
+        polarizability: reference static polarizability at these cores (e·Å²/V, 3x3:
+            ``alpha_ij = dmu_i/dF_j`` with the nuclei clamped, e.g. DFT by finite fields), if
+            any; times ``units.COULOMB_EV_A`` it is in Å³.
         info: any further per-frame metadata.
         source: where the structure came from, e.g. ``"data.xyz, frame 12"`` (used in errors).
     """
@@ -78,6 +81,7 @@ class Structure:
     forces: np.ndarray | None = None
     pair_forces: np.ndarray | None = None
     stress: np.ndarray | None = None
+    polarizability: np.ndarray | None = None
     info: dict = _field(default_factory=dict)
     source: str = "<memory>"
 
@@ -94,6 +98,9 @@ class Structure:
             self.pair_forces = _as_array(self.pair_forces, (-1, 3), "pair forces", self.source)
         if self.stress is not None:
             self.stress = _as_array(self.stress, (3, 3), "stress", self.source)
+        if self.polarizability is not None:
+            self.polarizability = _as_array(self.polarizability, (3, 3), "polarizability",
+                                            self.source)
         self.validate()
 
     # ------------------------------------------------------------------ properties
@@ -167,6 +174,7 @@ class Structure:
             ("electron-pair positions", self.pairs),
             ("external field", self.field),
             ("cell", self.cell),
+            ("polarizability", () if self.polarizability is None else self.polarizability),
         ):
             if not np.all(np.isfinite(arr)):
                 raise StructureError(f"{where}: {name} contain NaN or infinity")

@@ -13,7 +13,9 @@ One valence pair ``i`` of a configuration is displaced by ``dR`` (|dR| uniform i
   minimising ``1/2 sum_j phi_j |df_j|^2`` with ``phi(r) = r^2 / f_cut(r)`` (r the distance
   to the displaced pair; particles beyond the cutoff get no force). The solution is
   ``df_j = (lambda + mu x r~_j) / phi_j`` in the frame ``r~ = r + t`` with ``t = -Q1/Q0``:
-  ``lambda = -dF/Q0``, ``mu = Q2^-1 M~``.
+  ``lambda = -dF/Q0``, ``mu = Q2^-1 M~``;
+* polarizability: dropped (the loss's polarizability term takes the model's pair Hessian at
+  the labelled DFT centres, not at a displaced pair).
 
 Singular cases: when the weighted particles are collinear (e.g. H2, or a single neighbour),
 ``Q2`` is singular and the torque condition cannot be met by forces on them; the augmentation
@@ -158,6 +160,7 @@ def augment(
         energy=s.energy + 0.5 * config.k * length**2,
         forces=forces,
         pair_forces=new_pair_forces,
+        polarizability=None,  # a label of the DFT centres, not of the displaced pair
     )
     info.augmented, info.singular, info.pair, info.displacement = True, singular, i, d
     return out, info

@@ -189,6 +189,9 @@ class Batch:
     indices: list[int]
     n_augmented: int = 0
     n_singular: int = 0
+    #: (B, 3, 3) polarizability labels (e·Å²/V, float64; zero where not labelled)
+    polarizability: torch.Tensor | None = None
+    has_polarizability: torch.Tensor | None = None  # (B,) bool
 
     def to(self, device: torch.device | str) -> Batch:
         """A copy with the graph and the target tensors on ``device``."""
@@ -247,6 +250,8 @@ def make_batch(structures: Sequence[Structure], reference: HydrideReference | Co
     forces = np.zeros((g.n_particles, 3))
     stress = np.zeros((b, 3, 3))
     has_stress = np.zeros(b, dtype=bool)
+    alpha = np.zeros((b, 3, 3))
+    has_alpha = np.zeros(b, dtype=bool)
     start = 0
     for k, s in enumerate(structures):
         nc, npair = s.n_cores, s.n_pairs
@@ -259,6 +264,8 @@ def make_batch(structures: Sequence[Structure], reference: HydrideReference | Co
             forces[start + nc:start + nc + npair] = s.pair_forces
         if s.stress is not None:
             stress[k], has_stress[k] = s.stress, True
+        if s.polarizability is not None:
+            alpha[k], has_alpha[k] = s.polarizability, True
         start += n_part[k]
     energy = torch.tensor([reference.target(s) for s in structures], **f)
     coeff = torch.tensor(np.array([reference.coefficients(s) for s in structures]), **f)
@@ -268,4 +275,6 @@ def make_batch(structures: Sequence[Structure], reference: HydrideReference | Co
         forces=torch.as_tensor(forces, **f), stress=torch.as_tensor(stress, **f),
         has_stress=torch.as_tensor(has_stress), indices=list(indices or range(b)),
         n_augmented=n_augmented, n_singular=n_singular,
+        polarizability=torch.as_tensor(alpha, dtype=torch.float64),
+        has_polarizability=torch.as_tensor(has_alpha),
     )

@@ -5,11 +5,15 @@ Layout (all in emlpack's public units: Å, eV, eV/Å, V/Å, eV/Å^3, e)::
     /cores/numbers (n_cores_total,) int16      /cores/positions, /cores/forces (.., 3)
     /pairs/positions (n_pairs_total, 3)        /pairs/forces (n_pairs_total, 3)
     /records/{core_start, n_cores, pair_start, n_pairs, energy, field(3), cell(3,3), pbc,
-              charge, stress(3,3), molecule_id, kind, level, key, wall_time}
+              charge, stress(3,3), molecule_id, kind, level, key, wall_time,
+              polarizability(3,3)}
     /failures/{key, molecule_id, kind, reason}
     /references/{name, energy, level}          (e.g. the hydrides H2, CH4, NH3, H2O)
 
-Missing labels are NaN (``energy``, ``forces``, ``stress``). Each record has a unique ``key``
+Missing labels are NaN (``energy``, ``forces``, ``stress``, ``polarizability``). The
+``polarizability`` column (e·Å²/V, clamped nuclei) is optional: stores written before it
+existed read as unlabelled, and the first record with one adds the column (NaN for the records
+before it). Each record has a unique ``key``
 (e.g. ``"qm7-0003/nms800/0017"``), which makes labeling resumable.
 
 Crash safety: the number of committed rows of every group is an attribute of the file
@@ -46,11 +50,13 @@ FORMAT_VERSION = 1
 UNITS = {
     "positions": "angstrom", "energy": "eV", "forces": "eV/angstrom", "field": "V/angstrom",
     "stress": "eV/angstrom^3", "charge": "e", "cell": "angstrom (rows are lattice vectors)",
-    "wall_time": "s",
+    "wall_time": "s", "polarizability": "e*angstrom^2/V",
 }
 
 _REC_FLOAT = {"energy": (), "field": (3,), "cell": (3, 3), "charge": (), "stress": (3, 3),
               "wall_time": ()}
+#: record columns that a store may lack (written before they existed): NaN when absent
+_REC_OPTIONAL = {"polarizability": (3, 3)}
 _REC_INT = {"core_start": np.int64, "n_cores": np.int32, "pair_start": np.int64,
             "n_pairs": np.int32, "pbc": np.bool_}
 #: fixed-length UTF-8 text columns (bytes). Variable-length strings live in HDF5's global heap,
@@ -200,7 +206,8 @@ class DatasetStore:
             return
         f = self.file
         rec = f["records"]
-        cols = {name: rec[name][:n] for name in (*_REC_INT, *_REC_FLOAT, *_REC_STR)}
+        cols = {name: rec[name][:n] for name in (*_REC_INT, *_REC_FLOAT, *_REC_STR,
+                                                 *_present(rec, _REC_OPTIONAL))}
         cores = {name: f[f"cores/{name}"][:] for name in ("numbers", "positions", "forces")}
         pairs = {name: f[f"pairs/{name}"][:] for name in ("positions", "forces")}
         for i in range(n):
@@ -220,6 +227,9 @@ class DatasetStore:
         }
         for name in _REC_FLOAT:
             out[name] = np.asarray(cols[name][index], dtype=np.float64)
+        for name, shape in _REC_OPTIONAL.items():
+            out[name] = (np.asarray(cols[name][index], dtype=np.float64) if name in cols
+                         else np.full(shape, np.nan))
         for name in _REC_STR:
             out[name] = _text(cols[name][index])
         return out
@@ -234,7 +244,8 @@ class DatasetStore:
         rec = f["records"]
         c0, nc = int(rec["core_start"][index]), int(rec["n_cores"][index])
         p0, npair = int(rec["pair_start"][index]), int(rec["n_pairs"][index])
-        cols = {name: rec[name][index:index + 1] for name in (*_REC_INT, *_REC_FLOAT, *_REC_STR)}
+        cols = {name: rec[name][index:index + 1]
+                for name in (*_REC_INT, *_REC_FLOAT, *_REC_STR, *_present(rec, _REC_OPTIONAL))}
         cols["core_start"], cols["pair_start"] = np.array([0]), np.array([0])
         cores = {name: f[f"cores/{name}"][c0:c0 + nc] for name in ("numbers", "positions",
                                                                    "forces")}
@@ -251,11 +262,13 @@ class DatasetStore:
         forces = r["forces"] if np.all(np.isfinite(r["forces"])) else None
         pair_forces = r["pair_forces"] if np.all(np.isfinite(r["pair_forces"])) else None
         stress = r["stress"] if np.all(np.isfinite(r["stress"])) else None
+        alpha = r["polarizability"]
+        alpha = alpha if np.all(np.isfinite(alpha)) else None
         return Structure(
             numbers=r["numbers"], positions=r["positions"], pairs=r["pairs"], cell=r["cell"],
             pbc=r["pbc"], field=r["field"], charge=float(r["charge"]),
             energy=energy if np.isfinite(energy) else None, forces=forces,
-            pair_forces=pair_forces, stress=stress,
+            pair_forces=pair_forces, stress=stress, polarizability=alpha,
             info={k: r[k] for k in (*_REC_STR, "wall_time")},
             source=f"{self.path}, record {index}",
         )
@@ -357,6 +370,11 @@ class DatasetStore:
             "level": [str(s.info.get("level", "")) for s in structures],
             "key": keys,
         }
+        alphas = [nan3 if s.polarizability is None else s.polarizability for s in structures]
+        if "polarizability" in f["records"] or any(s.polarizability is not None
+                                                   for s in structures):
+            recs["polarizability"] = alphas
+            _add_optional_column(f["records"], "polarizability", n_rec)
         _write_rows(f["cores"], cores, n_c)
         _write_rows(f["pairs"], pairs, n_p)
         _write_rows(f["records"], recs, n_rec)
@@ -460,7 +478,7 @@ def _create_layout(f: h5py.File, chunk_scale: float = 1.0, precision: str = "flo
     make(pairs, "positions", (3,), per_particle, 4096)
     make(pairs, "forces", (3,), per_particle, 4096)
     rec = f.create_group("records")
-    for name, shape in _REC_FLOAT.items():
+    for name, shape in (*_REC_FLOAT.items(), *_REC_OPTIONAL.items()):
         make(rec, name, shape, np.float64)
     for name, dtype in _REC_INT.items():
         make(rec, name, (), dtype)
@@ -473,6 +491,26 @@ def _create_layout(f: h5py.File, chunk_scale: float = 1.0, precision: str = "flo
     make(ref, "energy", (), np.float64, 64)
     for name in _REF_STR:
         make(ref, name, (), f"S{_STR_LEN[name]}", 64)
+
+
+def _present(group: h5py.Group, optional: dict) -> tuple[str, ...]:
+    """The optional columns ``optional`` that ``group`` has."""
+    return tuple(name for name in optional if name in group)
+
+
+def _add_optional_column(records: h5py.Group, name: str, n_rows: int) -> None:
+    """Create the optional record column ``name`` in a store written before it existed, NaN
+    for its ``n_rows`` committed records (chunked and filtered like the ``stress`` column)."""
+    if name in records:
+        return
+    like = records["stress"]
+    ds = records.create_dataset(
+        name, shape=(n_rows, *_REC_OPTIONAL[name]), maxshape=(None, *_REC_OPTIONAL[name]),
+        dtype=np.float64, chunks=(like.chunks[0], *_REC_OPTIONAL[name]),
+        compression=like.compression, compression_opts=like.compression_opts,
+        shuffle=like.shuffle, fillvalue=np.nan)
+    records.file.attrs[f"unit_{name}"] = UNITS[name]
+    del ds
 
 
 def _write_rows(group: h5py.Group, columns: dict, start: int) -> None:

@@ -13,7 +13,8 @@ interprets the keys and removes core centres. Two conventions:
 ``native`` (what emlpack writes)
     the same ``Es`` rows (valence pairs only); ``external_field`` in V/Å; ASE's ``energy`` (eV),
     ``forces`` column (eV/Å, zero on ``Es`` rows), optional ``pair_forces`` column (eV/Å, zero on
-    atom rows), ``stress`` (eV/Å^3, ASE sign) and ``charge`` (e).
+    atom rows), ``stress`` (eV/Å^3, ASE sign), ``charge`` (e) and an optional
+    ``polarizability`` label (9 numbers, the 3x3 tensor row by row, e·Å²/V, nuclei clamped).
 
 ``auto`` picks ``native`` for a frame with ``external_field`` and ``reference`` otherwise. The
 field is converted between atomic units and V/Å here and nowhere else.
@@ -94,7 +95,7 @@ _ALWAYS_RESERVED = {
 
 #: frame keys that hold numbers; a bare word of a free-text comment (value ``True``) is ignored
 _NUMERIC_LABELS = {"energy", "free_energy", "charge", "efield", "external_field", "stress",
-                   "dipole", "magmom"}
+                   "dipole", "magmom", "polarizability"}
 
 
 #: the frame keys with a fixed shape that the reader takes, and what each must hold: a frame
@@ -106,6 +107,7 @@ FRAME_KEY_SHAPES = {
     "dipole": (3, "3 numbers (e·Å)"),
     "Lattice": (9, "9 numbers (the three cell vectors, Å)"),
     "stress": (9, "9 numbers (a 3x3 matrix, eV/Å^3)"),
+    "polarizability": (9, "9 numbers (a 3x3 matrix row by row, e·Å²/V)"),
     "pbc": (3, "3 flags T or F"),
 }
 #: the keys of :data:`FRAME_KEY_SHAPES` that hold a vector of 3 numbers
@@ -393,8 +395,11 @@ def _atoms_to_structure(
     pbc = bool(flags.all())
     cell = atoms.cell.array.copy() if pbc else np.zeros((3, 3))
 
+    polarizability = None
     if convention == "native":
         field = _vector(info.pop("external_field", np.zeros(3)), "external_field", source)
+        if "polarizability" in info:
+            polarizability = _matrix(info.pop("polarizability"), "polarizability", source)
     else:
         field = reference_field(info.pop("efield", None), source)
     charge = _scalar(info.pop("charge", 0.0), "charge", source)
@@ -459,6 +464,7 @@ def _atoms_to_structure(
                 None if pair_forces_all is None else np.asarray(pair_forces_all)[pair_rows][kept]
             ),
             stress=stress,
+            polarizability=polarizability,
             info=info,
             source=source,
         )
@@ -601,6 +607,20 @@ def _vector(value: object, key: str, source: str) -> np.ndarray:
     return arr
 
 
+def _matrix(value: object, key: str, source: str) -> np.ndarray:
+    """A 3x3 frame value: 9 numbers row by row (or a 3x3 array), finite."""
+    try:
+        arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ExtxyzError(f"{source}: '{key}' must be 9 numbers, got {_shown(value)}") from None
+    if arr.shape != (9,):
+        raise ExtxyzError(f"{source}: '{key}' must be {FRAME_KEY_SHAPES[key][1]}, got"
+                          f" {arr.size}: {_shown(value)}")
+    if not np.all(np.isfinite(arr)):
+        raise ExtxyzError(f"{source}: '{key}' contains NaN or infinity: {_shown(value)}")
+    return arr.reshape(3, 3)
+
+
 def _shown(value: object) -> str:
     """A frame value for a one-line message: as the file wrote it (numbers space-separated,
     at most 12), quoted."""
@@ -633,9 +653,10 @@ def write_structures(
     """Write ``structures`` to ``path`` atomically (:func:`emlpack._files.atomic_write`).
 
     ``convention="native"`` writes ``external_field`` (V/Å), ``forces``, ``pair_forces``,
-    ``stress`` (eV/Å^3) and ``charge``; ``"reference"`` writes ``efield`` (atomic units),
-    ``energy``, the ``force`` column and ``Lattice`` (stress is not written: the reference
-    defines no unit for it). With ``core_centres=True`` (reference only) the inner-shell centres
+    ``stress`` (eV/Å^3), ``polarizability`` (e·Å²/V, 9 numbers row by row) and ``charge``;
+    ``"reference"`` writes ``efield`` (atomic units), ``energy``, the ``force`` column and
+    ``Lattice`` (stress and polarizability are not written: the reference defines no unit for
+    them). With ``core_centres=True`` (reference only) the inner-shell centres
     are written as ``Es`` rows too: the ones removed on read (``info["core_centres"]``, at their
     original rows) or else ``n_core_pairs(Z)`` centres on each nucleus, before the valence pairs.
     ``core_centres="recorded"`` writes them only for a structure that records them (a frame read
@@ -699,8 +720,11 @@ def _structure_to_frame_atoms(
         info["external_field"] = s.field.copy()
         info["charge"] = float(s.charge)
         extra.pop("stress", None)
+        extra.pop("polarizability", None)
         if s.stress is not None:
             info["stress"] = s.stress.copy()
+        if s.polarizability is not None:
+            info["polarizability"] = s.polarizability.reshape(-1).copy()
         info.update(extra)
         if s.forces is not None:
             forces = np.zeros((len(atoms), 3))

@@ -21,8 +21,13 @@ from emlpack.nn.electrostatics import (
     coulomb_molecular_hessian,
     ewald_reciprocal_hessian_fractional,
 )
+from emlpack.nn.graph import Graph
 from emlpack.nn.potential import EMLP
-from emlpack.nn.short_range.hessian import geometric_variables, short_range_hessian
+from emlpack.nn.short_range.hessian import (
+    geometric_variables,
+    short_range_hessian,
+    short_range_position_hessian,
+)
 from emlpack.structure import Structure
 
 
@@ -191,3 +196,25 @@ def _extended_hessian_fast(
     return grad, hess
 
 
+def clamped_pair_hessian(model: EMLP, g: Graph) -> torch.Tensor:
+    """The pair block (3P, 3P) (eV/Å², pair by pair, x y z; float64, no graph) of the molecular
+    extended Hessian of the one molecule of ``g`` at ``g.positions``: the pairs' position
+    Hessian of the total energy with the cores clamped, from the same parts as
+    :func:`extended_hessian`'s fast method (the short range's pair directions,
+    :func:`~emlpack.nn.short_range.hessian.short_range_position_hessian`, in ``g``'s dtype,
+    plus the analytic Gaussian Coulomb block; the field term is linear in the positions and
+    adds nothing). The training loss's polarizability term takes it at the labelled pairs
+    (:func:`emlpack.properties.response.clamped_polarizabilities`)."""
+    if g.n_structures != 1 or bool(g.pbc.any()):
+        raise ValueError("clamped_pair_hessian: one molecule per graph")
+    if not standard_energy(model):
+        raise ValueError(f"clamped_pair_hessian: {type(model).__name__} defines its own"
+                         " energy; its pair Hessian has no closed-form parts")
+    pairs = torch.nonzero(g.is_pair).squeeze(1)
+    h_sr = short_range_position_hessian(model, g, pairs).double()
+    with torch.no_grad():
+        c = model.config
+        h_lr = coulomb_molecular_hessian(g.positions.detach().double(), g.charges.double(),
+                                         g.coulomb_i, g.coulomb_j, c.gamma, c.coulomb_eps)
+        cols = (3 * pairs[:, None] + torch.arange(3, device=pairs.device)).reshape(-1)
+        return h_sr + h_lr[cols][:, cols]

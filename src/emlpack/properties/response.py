@@ -9,7 +9,10 @@ Every response property is a Schur complement of this matrix: eliminating a bloc
 remaining variables ``y``. With the sign of the field term (``E_field = -mu . F``):
 
 * polarizability ``alpha = -d2E/dF2 = H_Fx H_xx^-1 H_xF`` (``H_FF = 0``), e·Å²/V; ``x`` = pairs
-  (clamped cores, the paper's main text) or pairs + cores (rigid-body motions projected out);
+  (clamped cores, the paper's main text: :func:`clamped_response`, the one home of this
+  formula) or pairs + cores (rigid-body motions projected out); with the pairs' Hessian taken
+  at given pairs and its derivative in the model's parameters,
+  :func:`clamped_polarizabilities` (the training loss's polarizability term);
 * Born-Oppenheimer core Hessian ``S_cc`` and dipole derivatives ``dmu/dR = -S_Fc`` (pairs
   eliminated), for IR spectra (:mod:`emlpack.properties.ir`);
 * with the pairs eliminated at clamped cores, the rotations that leave every core in place
@@ -41,6 +44,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from emlpack.geometry import (
     VoigtViews,
@@ -51,9 +55,11 @@ from emlpack.geometry import (
     voigt_piezo,
     voigt_stiffness,
 )
+from emlpack.nn.graph import Graph
 from emlpack.nn.potential import EMLP
+from emlpack.nn.short_range.hessian import short_range_curvatures
 from emlpack.pairs.checks import FLAT_CURVATURE
-from emlpack.properties.hessian import extended_hessian
+from emlpack.properties.hessian import clamped_pair_hessian, extended_hessian
 from emlpack.structure import Structure
 from emlpack.units import (
     A_PER_V_IN_PM_PER_V,
@@ -92,14 +98,109 @@ def pair_basis(hessian: np.ndarray, structure: Structure,
     molecules with three cores off a line)."""
     if structure.pbc or structure.n_pairs == 0:
         return None
-    rotations = core_fixed_rotations(structure.positions, structure.pairs, LINEAR_TOLERANCE)
+    pairs = _molecule_layout(structure)[1]
+    return _flat_rotation_basis(hessian[np.ix_(pairs, pairs)], structure.positions,
+                                structure.pairs, flat_curvature)
+
+
+def _flat_rotation_basis(h_pp: np.ndarray, cores: np.ndarray, pairs: np.ndarray,
+                         flat_curvature: float) -> np.ndarray | None:
+    """:func:`pair_basis` from the pair block ``h_pp`` (3P, 3P) and the positions (Å)."""
+    rotations = core_fixed_rotations(cores, pairs, LINEAR_TOLERANCE)
     if not rotations.shape[1]:
         return None
-    pairs = _molecule_layout(structure)[1]
-    h_pp = hessian[np.ix_(pairs, pairs)]
     w, v = np.linalg.eigh(rotations.T @ (0.5 * (h_pp + h_pp.T)) @ rotations)
     flat = rotations @ v[:, np.abs(w) <= flat_curvature]
     return internal_basis(flat) if flat.shape[1] else None
+
+
+def clamped_response(hessian: np.ndarray, pairs: np.ndarray, field: np.ndarray,
+                     basis: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs relaxed at clamped cores, from an extended Hessian whose variables ``pairs``
+    (3P indices) are the pairs' Cartesian positions and ``field`` (3) the field:
+
+    * the polarizability ``alpha = H_Fp B (B^T H_pp B)^-1 B^T H_pF`` (3, 3) (e·Å²/V;
+      ``-d2E/dF2`` at relaxed pairs, ``H_FF = 0``; the Schur complement
+      :func:`~emlpack.geometry.schur_complement`);
+    * the pairs' shifts per unit field ``D = dr_p/dF = -B (B^T H_pp B)^-1 B^T H_pF`` (3P, 3)
+      (Å per V/Å), so that ``alpha = -H_Fp D`` and, for a change ``dH_pp`` of the pair
+      block, ``d alpha = -D^T dH_pp D``;
+
+    ``basis`` (3P, m) orthonormal: the pair displacements relaxed (default: all)."""
+    alpha = -schur_complement(hessian, field, pairs, basis)
+    h = 0.5 * (hessian + hessian.T)
+    h_pp, h_pf = h[np.ix_(pairs, pairs)], h[np.ix_(pairs, field)]
+    if basis is None:
+        return alpha, -np.linalg.solve(h_pp, h_pf)
+    return alpha, -basis @ np.linalg.solve(basis.T @ h_pp @ basis, basis.T @ h_pf)
+
+
+@dataclass
+class ClampedPolarizabilities:
+    """Result of :func:`clamped_polarizabilities` for the B molecules of a graph.
+
+    Attributes:
+        alpha: (B, 3, 3) polarizabilities (e·Å²/V, float64); with ``create_graph`` a
+            differentiable function of the model's parameters.
+        problems: per molecule ``""``, or why its pair Hessian at the given pairs is not
+            positive definite (its ``alpha`` is then no response: leave it out).
+    """
+
+    alpha: torch.Tensor
+    problems: list[str]
+
+
+def clamped_polarizabilities(model: EMLP, g: Graph, create_graph: bool = False,
+                             flat_curvature: float = FLAT_CURVATURE) -> ClampedPolarizabilities:
+    """Clamped-core polarizability of every molecule of ``g`` from the model's pair Hessian at
+    the pairs of ``g`` as they are (not relaxed first): ``alpha = H_Fp H_pp^-1 H_pF``
+    (:func:`clamped_response`; the rotation of a linear molecule's pairs about its axis
+    projected out where flat, :func:`pair_basis`). At the model's own pair minimum this is
+    :func:`polarizability_from_hessian`'s; at other pairs (the DFT centres of training
+    labels) it is the harmonic response of the model's pairs about them.
+
+    The pair Hessian is exact (:func:`~emlpack.properties.hessian.clamped_pair_hessian`, per
+    molecule, no graph); the parameters enter only through its short-range part, so with
+    ``create_graph`` the value is kept and the first derivatives in the parameters come from
+    ``d alpha = -D^T dH_sr D`` (``D``: the pairs' shifts per unit field) as the curvatures
+    ``D_a^T H_sr D_c`` of the short-range energy along the three columns of ``D``, one
+    gradient graph and three reverse passes for all molecules together
+    (:func:`~emlpack.nn.short_range.hessian.short_range_curvatures`), differentiable in
+    turn. Second derivatives in the parameters are not those of ``alpha``."""
+    b = g.n_structures
+    alpha = torch.zeros(b, 3, 3, dtype=torch.float64, device=g.positions.device)
+    directions = torch.zeros(3, g.n_particles, 3, dtype=torch.float64, device=alpha.device)
+    problems = [""] * b
+    for k in range(b):
+        keep = torch.zeros(b, dtype=torch.bool, device=alpha.device)
+        keep[k] = True
+        sub = g.subgraph(keep)
+        if int(sub.n_pairs[0]) == 0:
+            continue
+        h_pp = clamped_pair_hessian(model, sub).cpu().numpy()
+        n = h_pp.shape[0]
+        pos = sub.positions.detach().double().cpu().numpy()
+        is_pair = sub.is_pair.cpu().numpy()
+        q = sub.charges.detach().double().cpu().numpy()[is_pair]
+        h = np.zeros((n + 3, n + 3))
+        h[:n, :n] = h_pp
+        h[:n, n:] = -np.kron(q[:, None], np.eye(3))  # d2E/dr_ia dF_b = -q_i delta_ab
+        h[n:, :n] = h[:n, n:].T
+        basis = _flat_rotation_basis(h_pp, pos[~is_pair], pos[is_pair], flat_curvature)
+        reduced = h_pp if basis is None else basis.T @ h_pp @ basis
+        lowest = float(np.linalg.eigvalsh(0.5 * (reduced + reduced.T))[0])
+        if lowest <= flat_curvature:
+            problems[k] = (f"lowest pair-Hessian eigenvalue {lowest:.3g} eV/Å^2 at the given"
+                           " pairs: not a minimum of the model's pairs there")
+            continue
+        value, shifts = clamped_response(h, np.arange(n), np.arange(n, n + 3), basis)
+        alpha[k] = torch.as_tensor(value, dtype=torch.float64)
+        rows = torch.nonzero(g.batch == k).squeeze(1)[sub.is_pair]
+        directions[:, rows] = torch.as_tensor(shifts.T.reshape(3, -1, 3), dtype=torch.float64)
+    if create_graph:
+        curv = short_range_curvatures(model, g, directions.to(g.dtype), create_graph=True)
+        alpha = alpha - (curv - curv.detach()).double()
+    return ClampedPolarizabilities(alpha, problems)
 
 
 def polarizability_from_hessian(
@@ -120,7 +221,7 @@ def polarizability_from_hessian(
         coords = np.concatenate([cores, pairs])
         basis = internal_basis(rigid_body_modes(structure.all_positions))
         return -schur_complement(hessian, field, coords, basis)
-    return -schur_complement(hessian, field, pairs, pair_basis(hessian, structure))
+    return clamped_response(hessian, pairs, field, pair_basis(hessian, structure))[0]
 
 
 def born_oppenheimer_blocks(

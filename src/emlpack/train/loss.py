@@ -4,6 +4,13 @@
       + lambda_f / 3N    sum_i |F_i - F_tr,i|^2                      (core forces)
       + lambda_c / 3C    sum_j |f_j - f_tr,j|^2                      (electron-pair forces)
       + lambda_s / 9B_s  sum_b |sigma_b - sigma_tr,b|^2              (stress in GPa, if labelled)
+      + lambda_a / 9B_a  sum_b |alpha_b - alpha_tr,b|^2              (polarizability in bohr^3)
+
+The last term is not the paper's (issue 51: a lever on the pairs' stiffness) and is off by
+default (``lambda_a = 0``): ``alpha_b`` is the model's clamped-core polarizability
+``H_Fp H_pp^-1 H_pF`` from its pair Hessian at the labelled DFT centres
+(:func:`predict_polarizability`), for the configurations that carry a ``polarizability``
+label; a batch without one leaves the loss as it was.
 
 Validation also reports the pairs' field response (:func:`field_response_slope`).
 
@@ -14,20 +21,28 @@ of K processes equals that of one process with the same global batch).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING
 
 import torch
 
 from emlpack.data.dataset import Batch
-from emlpack.units import EV_PER_A3_IN_GPA
+from emlpack.properties.response import clamped_polarizabilities
+from emlpack.units import COULOMB_EV_A, EV_PER_A3_IN_GPA, POLARIZABILITY_A3_IN_BOHR3
 
 if TYPE_CHECKING:
     import numpy as np
 
     from emlpack.data.references import ConstantReference, HydrideReference
+    from emlpack.nn.potential import EMLP
 
+log = logging.getLogger(__name__)
+
+#: the terms of the validation metrics and of every loss
 TERMS = ("energy", "forces", "pair_forces", "stress")
+#: e·Å²/V -> bohr³, the unit of the polarizability term's errors
+_ALPHA_IN_BOHR3 = COULOMB_EV_A * POLARIZABILITY_A3_IN_BOHR3
 
 
 def field_response_slope(residual: np.ndarray | torch.Tensor,
@@ -49,12 +64,19 @@ def field_response_slope(residual: np.ndarray | torch.Tensor,
 
 @dataclass
 class LossWeights:
-    """lambda_E (1/eV^2), lambda_f, lambda_c (Å^2/eV^2), lambda_s (1/GPa^2)."""
+    """lambda_E (1/eV^2), lambda_f, lambda_c (Å^2/eV^2), lambda_s (1/GPa^2), lambda_a
+    (1/bohr^6; 0: the polarizability term is off and never computed)."""
 
     energy: float = 1.0
     forces: float = 1.0
     pair_forces: float = 1.0
     stress: float = 0.1
+    polarizability: float = 0.0
+
+    def terms(self) -> tuple[str, ...]:
+        """The loss terms these weights use: :data:`TERMS`, and ``polarizability`` when its
+        weight is not zero."""
+        return (*TERMS, "polarizability") if self.polarizability > 0 else TERMS
 
     def to_dict(self) -> dict:
         """The weights as a plain dict (the config's ``loss`` section)."""
@@ -75,8 +97,45 @@ def predict(model: torch.nn.Module, batch: Batch,
     return pred
 
 
+def predict_polarizability(model: EMLP, batch: Batch,
+                           create_graph: bool = True) -> dict[str, torch.Tensor]:
+    """The polarizability term's prediction: ``polarizability`` (L, 3, 3) (e·Å²/V, float64)
+    of the L configurations of ``batch`` that carry a label, from the model's pair Hessian at
+    their (DFT) pairs (:func:`emlpack.properties.response.clamped_polarizabilities`;
+    ``create_graph``: differentiable in the parameters), and ``polarizability_used`` (B,)
+    bool, which they are. A labelled configuration whose pair Hessian there is not positive
+    definite has no such response: it is left out with a warning. ``model`` is the plain
+    :class:`~emlpack.nn.potential.EMLP` (not a DDP wrapper).
+
+    Why at the DFT centres: the label is DFT's response about its own centres, and there the
+    model's pairs should feel DFT's restoring forces (the pair-force labels already ask for
+    zero force there); the model's own minimum would need a pair relaxation per labelled
+    configuration and step, and differentiating it (implicitly) through the relaxation."""
+    used = batch.has_polarizability.clone()
+    g = batch.graph
+    if not bool(used.any()):
+        return {"polarizability": torch.zeros(0, 3, 3, dtype=torch.float64,
+                                              device=g.positions.device),
+                "polarizability_used": used}
+    keep = torch.zeros(g.n_structures, dtype=torch.bool, device=used.device)
+    keep[: batch.n_structures] = used
+    result = clamped_polarizabilities(model, g.subgraph(keep), create_graph=create_graph)
+    labelled = torch.nonzero(used).squeeze(1).tolist()
+    ok = []
+    for k, problem in zip(labelled, result.problems, strict=True):
+        if problem:
+            log.warning("configuration %d: polarizability label left out of the loss: %s",
+                        batch.indices[k], problem)
+            used[k] = False
+        ok.append(not problem)
+    ok_mask = torch.tensor(ok, dtype=torch.bool, device=result.alpha.device)
+    return {"polarizability": result.alpha[ok_mask], "polarizability_used": used}
+
+
 def loss_terms(pred: dict, batch: Batch) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
-    """``term -> (sum of squared errors, count)`` for the four terms of the cost function."""
+    """``term -> (sum of squared errors, count)`` for the four terms of the cost function, and
+    the polarizability term (bohr³) when ``pred`` has :func:`predict_polarizability`'s
+    entries."""
     dt = pred["forces"].dtype
     e = ((pred["energy"] - batch.energy) / batch.n_cores.to(dt)) ** 2
     terms = {"energy": (e.sum(), torch.tensor(float(len(e)), dtype=dt))}
@@ -90,6 +149,13 @@ def loss_terms(pred: dict, batch: Batch) -> dict[str, tuple[torch.Tensor, torch.
     else:
         zero = pred["forces"].sum() * 0.0
         terms["stress"] = (zero, torch.tensor(0.0, dtype=dt))
+    if "polarizability" in pred:
+        used = pred["polarizability_used"]
+        diff = (pred["polarizability"] - batch.polarizability[used].to(torch.float64))
+        diff = diff * _ALPHA_IN_BOHR3
+        zero = pred["forces"].sum() * 0.0
+        terms["polarizability"] = (zero + (diff * diff).sum().to(dt),
+                                   torch.tensor(float(diff.numel()), dtype=dt))
     return terms
 
 

@@ -71,7 +71,14 @@ from emlpack.nn.checkpoint import read_checkpoint, save_model
 from emlpack.nn.potential import EMLP, ModelConfig
 from emlpack.optional import import_optional
 from emlpack.train.config import ConfigError, dump_config, training_device
-from emlpack.train.loss import TERMS, LossWeights, Metrics, combine, loss_terms, predict
+from emlpack.train.loss import (
+    LossWeights,
+    Metrics,
+    combine,
+    loss_terms,
+    predict,
+    predict_polarizability,
+)
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -450,7 +457,8 @@ class Trainer:
         from emlpack.progress import progress as progress_bar
 
         self.model.train()
-        sums = torch.zeros(len(TERMS) + 3, dtype=torch.float64)
+        names = self.weights.terms()
+        sums = torch.zeros(len(names) + 3, dtype=torch.float64)
         batches = self._loader(self.epoch)
         progress = self.cfg["output"]["progress"] and self.rank == 0
         # off a terminal the epoch's own log line is its progress
@@ -459,11 +467,13 @@ class Trainer:
         for batch in bar:
             batch = batch.to(self.device)
             pred = predict(self.ddp, batch, self.reference)
+            if "polarizability" in names:  # the plain model: the term adds its own graph
+                pred.update(predict_polarizability(self.model, batch))
             terms = loss_terms(pred, batch)
-            counts = torch.stack([terms[k][1] for k in TERMS]).double()
+            counts = torch.stack([terms[k][1] for k in names]).double()
             if self.dist:
                 self._all_reduce(counts)
-            gcounts = dict(zip(TERMS, counts.to(pred["forces"].dtype), strict=True))
+            gcounts = dict(zip(names, counts.to(pred["forces"].dtype), strict=True))
             loss = combine(terms, self.weights, gcounts) * self.world
             self.optimizer.zero_grad(set_to_none=True)
             # the parameters only: a plain backward() also differentiates the loss with respect
@@ -476,18 +486,18 @@ class Trainer:
             self.step += 1
             # per-term mean squared errors of this global batch, for the log
             parts = torch.tensor([float(terms[k][0].detach()) / max(float(counts[n]), 1.0)
-                                  for n, k in enumerate(TERMS)], dtype=torch.float64)
+                                  for n, k in enumerate(names)], dtype=torch.float64)
             stats = torch.cat([parts, torch.tensor(
                 [batch.n_augmented, batch.n_singular, 0.0], dtype=torch.float64)])
             if self.dist:
                 self._all_reduce(stats)
-            stats[-1] = sum(getattr(self.weights, k) * stats[n] for n, k in enumerate(TERMS))
+            stats[-1] = sum(getattr(self.weights, k) * stats[n] for n, k in enumerate(names))
             sums += stats
             bar.set_postfix(loss=f"{float(stats[-1]):.4g}")
         n = max(self.steps_per_epoch, 1)
-        out = {f"train_{k}_mse": float(sums[i]) / n for i, k in enumerate(TERMS)}
+        out = {f"train_{k}_mse": float(sums[i]) / n for i, k in enumerate(names)}
         out["train_loss"] = float(sums[-1]) / n
-        out["n_augmented"], out["n_singular"] = int(sums[4]), int(sums[5])
+        out["n_augmented"], out["n_singular"] = int(sums[len(names)]), int(sums[len(names) + 1])
         return out
 
     def validate(self) -> dict:

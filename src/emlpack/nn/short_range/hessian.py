@@ -11,6 +11,10 @@ rows = lattice vectors, Å). The neighbour list is the graph's, frozen.
   is added here.
 * Any other family: reverse over reverse on ``E_sr`` (one reverse pass of the gradient's
   graph per row), exact as well.
+
+:func:`short_range_curvatures` gives the curvatures along a few directions of every
+structure of a batch instead, with the graph to the model's parameters kept when asked (the
+training loss's polarizability term differentiates them).
 """
 
 from __future__ import annotations
@@ -28,8 +32,8 @@ if TYPE_CHECKING:
     from emlpack.nn.graph import Graph
     from emlpack.nn.potential import EMLP
 
-__all__ = ["edge_derivatives", "geometric_variables", "short_range_hessian",
-           "short_range_position_hessian"]
+__all__ = ["edge_derivatives", "geometric_variables", "short_range_curvatures",
+           "short_range_hessian", "short_range_position_hessian"]
 
 
 def geometric_variables(
@@ -172,3 +176,36 @@ def short_range_position_hessian(model: EMLP, g: Graph, particles: torch.Tensor,
     cols = (3 * particles[:, None] + torch.arange(3, device=particles.device)).reshape(-1)
     return short_range_hessian(model, g, g.positions.detach().reshape(-1), pbc=False,
                                columns=cols, mixed=mixed)
+
+
+def short_range_curvatures(model: EMLP, g: Graph, directions: torch.Tensor,
+                           create_graph: bool = False) -> torch.Tensor:
+    """Curvatures ``M[b, a, c] = d_a^T H_b d_c`` (eV) of the short-range energy of every
+    structure ``b`` of ``g`` along the displacements ``directions`` (k, N, 3) (Å) of its
+    particles (``H_b``: its Cartesian position Hessian at ``g.positions``, cell held), shape
+    (B, k, k).
+
+    Reverse over reverse: one gradient graph and one reverse pass per direction for the whole
+    batch (the structures' energies are independent, so the Hessian of their sum is block
+    diagonal and each structure's part of ``H d_a`` is its own block's product).
+    ``create_graph``: the result keeps its graph to the model's parameters (and is then a
+    differentiable function of them)."""
+    b = g.n_structures
+    k = directions.shape[0]
+    with torch.enable_grad():
+        pos = g.positions.detach().requires_grad_(True)
+        energy = model.atomic_energies(g, pos, g.cell).sum()
+        if not energy.requires_grad:
+            return pos.new_zeros(b, k, k)
+        (grad,) = torch.autograd.grad(energy, pos, create_graph=True)
+        if not grad.requires_grad:  # linear in the positions: no curvature
+            return pos.new_zeros(b, k, k)
+        dirs = directions.to(grad.dtype)
+        products = []
+        for a in range(k):
+            (hv,) = torch.autograd.grad(grad, pos, dirs[a], create_graph=create_graph,
+                                        retain_graph=True, materialize_grads=True)
+            products.append(hv)
+        hd = torch.stack(products)  # [k, N, 3]: H d_a
+    per_particle = torch.einsum("anx,cnx->nac", hd, dirs)  # [N, k, k]
+    return segment_sum(per_particle, g.batch, b)
