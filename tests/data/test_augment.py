@@ -138,3 +138,12 @@ def test_periodic_minimum_image_and_zero_net_force():
     # the core at x=0.1 is 0.15 Å away through the boundary: it takes most of the balance
     assert np.linalg.norm(added[0]) > np.linalg.norm(added[1]) > 0
     assert np.all(added[2:4] == 0) and np.all(added[5] == 0)
+
+
+def test_an_augmented_configuration_loses_its_polarizability_label(eqm7):
+    """The label is DFT's response about its own centres: a displaced pair is not there."""
+    s = eqm7[0].copy(polarizability=np.eye(3))
+    moved, info = augment(s, np.random.default_rng(0), ALWAYS)
+    assert info.augmented and moved.polarizability is None
+    kept, info = augment(s, np.random.default_rng(0), AugmentationConfig(probability=0.0))
+    assert not info.augmented and kept.polarizability is not None

@@ -113,3 +113,57 @@ def test_training_domain_counts_a_molecule_by_its_smallest_configuration():
     assert training_domain(same) == {"elements": [1, 6, 8], "max_heavy_atoms": 3}
     other = [config(ethanol, "ethanol"), config(touching, "ethanol-water")]
     assert training_domain(other)["max_heavy_atoms"] == 4
+
+
+def test_batches_carry_polarizability_labels(eqm7):
+    alpha = np.diag([1.0, 2.0, 3.0])
+    batch = make_batch([eqm7[0], eqm7[1].copy(polarizability=alpha)],
+                       HydrideReference(*load_hydrides(shared_path("data/hydrides"))), 4.0, 1.0,
+                       torch.float32)
+    assert batch.has_polarizability.tolist() == [False, True]
+    assert batch.polarizability.dtype == torch.float64
+    np.testing.assert_array_equal(batch.polarizability[1].numpy(), alpha)
+    assert float(batch.polarizability[0].abs().sum()) == 0.0
+
+
+def test_data_set_folders_attach_their_polarizability_labels(tmp_path):
+    """``FOLDER/polarizability/KEY.json`` labels reach their configurations through
+    ``read_shards``; a label of no record, of a validation molecule, of other cores or under
+    another file name is refused naming its file."""
+    import json
+
+    from emlpack.data.shards import label_file_name, read_shards
+    from emlpack.data.store import StoreError
+    from tests.examples.eqm7_data import tiny_dataset
+
+    folder = tiny_dataset(tmp_path / "data")
+    data = read_shards(folder)
+    assert all(s.polarizability is None for s in data.structures)
+    s = next(s for s in data.structures if s.info["molecule_id"] == "ethanol")
+    labels = folder / "polarizability"
+    labels.mkdir()
+    alpha = np.eye(3) * 0.35
+
+    def write(key, numbers, positions, name=None):
+        path = labels / (name or label_file_name(key))
+        path.write_text(json.dumps({"key": key, "numbers": numbers.tolist(),
+                                    "positions": positions.tolist(),
+                                    "polarizability_e_A2_per_V": alpha.tolist()}))
+        return path
+
+    path = write(s.info["key"], s.numbers, s.positions)
+    again = read_shards(folder)
+    got = {t.info["key"]: t.polarizability for t in again.structures}
+    np.testing.assert_array_equal(got[s.info["key"]], alpha)
+    assert sum(v is not None for v in got.values()) == 1
+    for key, numbers, positions, name, message in (
+        ("ethanol/nms/9999", s.numbers, s.positions, None, "no record"),
+        ("ethene/nms/0000", s.numbers, s.positions, None, "ethene is a val molecule"),
+        (s.info["key"], s.numbers, s.positions + 1e-3, None, "its cores are not those"),
+        (s.info["key"], s.numbers, s.positions, "other.json", "must be named"),
+    ):
+        path.unlink()
+        path = write(key, numbers, positions, name)
+        with pytest.raises(StoreError, match=message):
+            read_shards(folder)
+        assert path.name in str(pytest.raises(StoreError, read_shards, folder).value)

@@ -221,3 +221,40 @@ def test_float32_compressed_store_is_small_and_reads_back_float64(tmp_path):
     assert sizes["packed"] / len(structures) < 2000  # bytes per configuration
     with pytest.raises(ValueError, match="precision"):
         DatasetStore(tmp_path / "x.h5", "a", precision="float16")
+
+
+def test_polarizability_label_round_trip_and_stores_without_the_column(tmp_path):
+    """The optional ``polarizability`` column (e·Å²/V): labelled records read back exactly,
+    unlabelled ones as None; a store written before the column existed reads as unlabelled
+    and gains the column (NaN before) with its first labelled record."""
+    import h5py
+
+    alpha = np.array([[1.1, 0.1, -0.2], [0.1, 1.3, 0.05], [-0.2, 0.05, 0.9]])
+    labelled = _methane(0).copy(polarizability=alpha)
+    path = tmp_path / "s.h5"
+    with DatasetStore(path, "a") as st:
+        st.append([labelled, _methane(1)])
+    with DatasetStore(path) as st:
+        got = list(st)
+        np.testing.assert_array_equal(got[0].polarizability, alpha)
+        np.testing.assert_array_equal(st.structure(0).polarizability, alpha)
+        assert got[1].polarizability is None and st.structure(1).polarizability is None
+        assert st.metadata["unit_polarizability"] == "e*angstrom^2/V"
+    old = tmp_path / "old.h5"
+    with DatasetStore(old, "a") as st:
+        st.append([_methane(2)])
+    with h5py.File(old, "r+") as f:  # as written before the column existed
+        del f["records/polarizability"]
+        del f.attrs["unit_polarizability"]
+    with DatasetStore(old) as st:
+        assert st[0].polarizability is None and next(iter(st)).polarizability is None
+    with DatasetStore(old, "a") as st:
+        st.append([_methane(3)])  # no label: the old layout stays
+    with h5py.File(old, "r") as f:
+        assert "polarizability" not in f["records"]
+    with DatasetStore(old, "a") as st:
+        st.append([labelled.copy(info={**labelled.info, "key": "ch4/labelled"})])
+    with DatasetStore(old) as st:
+        assert [s.polarizability is None for s in st] == [True, True, False]
+        np.testing.assert_array_equal(st[2].polarizability, alpha)
+        assert st.metadata["unit_polarizability"] == "e*angstrom^2/V"

@@ -247,3 +247,24 @@ def test_reference_frames_keep_every_row_and_recorded_cores_round_trip(eqm7, tmp
     a, b = read_reference_frames(path)
     np.testing.assert_allclose(a.centres, frames[0].centres, rtol=0, atol=1e-12)
     assert len(b.centres) == eqm7[0].n_pairs
+
+
+def test_polarizability_label_round_trip_and_errors(eqm7, tmp_path):
+    """Native extxyz carries the optional ``polarizability`` label (9 numbers row by row,
+    e·Å²/V); the reference convention leaves it out; a wrong length is one clear error."""
+    from emlpack.io.extxyz import ExtxyzError
+
+    alpha = np.arange(9.0).reshape(3, 3) / 8 + np.eye(3)
+    frames = [eqm7[0].copy(polarizability=alpha), eqm7[1]]
+    path = tmp_path / "alpha.xyz"
+    write_structures(path, frames)
+    assert 'polarizability="1.0 0.125 0.25 0.375 1.5 0.625 0.75 0.875 2.0"' in path.read_text()
+    back = read_structures(path)
+    np.testing.assert_array_equal(back[0].polarizability, alpha)
+    assert back[1].polarizability is None and "polarizability" not in back[0].info
+    write_structures(tmp_path / "ref.xyz", frames, convention="reference")
+    assert "polarizability" not in (tmp_path / "ref.xyz").read_text()
+    bad = tmp_path / "bad.xyz"
+    bad.write_text(path.read_text().replace('polarizability="1.0 ', 'polarizability="'))
+    with pytest.raises(ExtxyzError, match=r"bad.xyz, frame 0: 'polarizability' must be 9"):
+        read_structures(bad)

@@ -154,3 +154,25 @@ def test_a_pair_on_a_core_is_finite(family, pbc):
     loss = result["energy"].sum() + (result["forces"] ** 2).sum()
     loss.backward()
     assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_short_range_curvatures_are_the_hessian_along_the_directions(family):
+    """``short_range_curvatures`` of a batch of two structures (k directions on all their
+    particles) equals ``d_a^T H d_c`` with each structure's exact short-range Hessian, and
+    with ``create_graph`` it is differentiable in the parameters."""
+    from emlpack.nn.short_range.hessian import short_range_curvatures, short_range_hessian
+
+    model = random_model(family=family)
+    structures = [methane(), methane(seed=8)]
+    g = model.graph(structures)
+    directions = torch.randn(3, g.n_particles, 3, generator=torch.Generator().manual_seed(0),
+                             dtype=torch.float64)
+    curv = short_range_curvatures(model, g, directions, create_graph=True)
+    for b, s in enumerate(structures):
+        sub = model.graph(s)
+        h = short_range_hessian(model, sub, sub.positions.reshape(-1), pbc=False)
+        d = directions[:, g.batch == b].reshape(3, -1)
+        torch.testing.assert_close(curv[b].detach(), d @ h @ d.T, rtol=1e-10, atol=1e-10)
+    (grad,) = torch.autograd.grad(curv.sum(), next(model.short_range.parameters()))
+    assert float(grad.abs().max()) > 0

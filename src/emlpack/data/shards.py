@@ -8,14 +8,19 @@ Layout of a data-set folder (see :mod:`emlpack.qm.campaign`, which writes it)::
     shards/NNNN.h5     finished labels, one small :class:`~emlpack.data.store.DatasetStore`
                        per shard, never rewritten once committed
     prepared/NAME.npz  the cheap-level geometry and Hessian each molecule was sampled from
+    polarizability/KEY.json
+                       optional: a DFT polarizability label of one stored configuration
+                       (training split only; :func:`read_polarizability_labels`)
 
 :func:`read_shards` reads every shard as one data set, with the split taken from
-``molecules.csv`` (by molecule), so the split never depends on which labels are finished.
+``molecules.csv`` (by molecule), so the split never depends on which labels are finished,
+and attaches the polarizability labels to their configurations.
 """
 
 from __future__ import annotations
 
 import csv
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,6 +34,10 @@ HYDRIDE_NAMES = ("H2", "CH4", "NH3", "H2O")
 SPLITS = ("train", "val", "test")
 MOLECULES_FILE = "molecules.csv"
 SHARD_DIR = "shards"
+#: folder of the polarizability labels, one ``<key>.json`` per configuration
+POLARIZABILITY_DIR = "polarizability"
+#: a label's cores must sit where its record's do, within this (Å)
+LABEL_POSITION_TOLERANCE = 1e-6
 
 
 @dataclass
@@ -118,6 +127,7 @@ def read_shards(folder: str | Path) -> ShardedData:
                     hyd[str(s.info.get("molecule_id"))] = s
                 else:
                     structures.append(s)
+    _attach_polarizabilities(folder, structures, split_of)
     hydrides = None
     if all(h in hyd for h in HYDRIDE_NAMES):
         hydrides = {
@@ -136,3 +146,62 @@ def finished_keys(folder: str | Path, failures: bool = True) -> set[str]:
         with DatasetStore(path, "r") as store:
             keys |= store.done_keys() if failures else set(store.keys())
     return keys
+
+
+def label_file_name(key: str) -> str:
+    """The file name of the polarizability label of record ``key``: its ``/`` as ``__``."""
+    return key.replace("/", "__") + ".json"
+
+
+def read_polarizability_labels(folder: str | Path) -> dict[str, dict]:
+    """The polarizability labels of a data-set folder (``FOLDER/polarizability/*.json``, none
+    when the folder is absent), by record key: dicts with ``polarizability`` (3, 3) (e·Å²/V),
+    ``numbers``, ``positions`` (Å) and ``path``. A file is JSON with ``key``, ``numbers``,
+    ``positions`` and ``polarizability_e_A2_per_V`` (see
+    ``examples/eqm7/polarizability_labels.py``, which writes them); a file without them, or
+    not named after its key, raises :class:`~emlpack.data.store.StoreError` naming it."""
+    out: dict[str, dict] = {}
+    for path in sorted((Path(folder) / POLARIZABILITY_DIR).glob("*.json")):
+        try:
+            d = json.loads(path.read_text())
+            key = str(d["key"])
+            alpha = np.asarray(d["polarizability_e_A2_per_V"], dtype=np.float64)
+            numbers = np.asarray(d["numbers"], dtype=np.int64)
+            positions = np.asarray(d["positions"], dtype=np.float64).reshape(-1, 3)
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise StoreError(f"{path}: not a polarizability label ({exc})") from None
+        if alpha.shape != (3, 3) or not np.all(np.isfinite(alpha)):
+            raise StoreError(f"{path}: polarizability_e_A2_per_V must be 3x3 finite numbers")
+        if path.name != label_file_name(key):
+            raise StoreError(f"{path}: the label of record {key!r} must be named"
+                             f" {label_file_name(key)}")
+        out[key] = {"polarizability": alpha, "numbers": numbers, "positions": positions,
+                    "path": path}
+    return out
+
+
+def _attach_polarizabilities(folder: str | Path, structures: list[Structure],
+                             split_of: dict[str, str]) -> None:
+    """Set ``polarizability`` of the ``structures`` that have a label in ``folder``; a label
+    of no stored record, of a validation or test molecule, or of other cores raises
+    :class:`~emlpack.data.store.StoreError` naming its file."""
+    labels = read_polarizability_labels(folder)
+    if not labels:
+        return
+    by_key = {str(s.info.get("key", "")): k for k, s in enumerate(structures)}
+    for key, label in labels.items():
+        index = by_key.get(key)
+        path = label["path"]
+        if index is None:
+            raise StoreError(f"{path}: no record {key!r} in the shards of {folder}")
+        s = structures[index]
+        name = str(s.info.get("molecule_id", ""))
+        if split_of.get(name) != "train":
+            raise StoreError(f"{path}: {name} is a {split_of.get(name)} molecule; polarizability"
+                             " labels belong to training molecules only")
+        same = (np.array_equal(label["numbers"], s.numbers)
+                and label["positions"].shape == s.positions.shape
+                and np.abs(label["positions"] - s.positions).max() <= LABEL_POSITION_TOLERANCE)
+        if not same:
+            raise StoreError(f"{path}: its cores are not those of record {key!r}")
+        structures[index] = s.copy(polarizability=label["polarizability"])

@@ -1,6 +1,7 @@
 """Dipole polarizability (and Born charges) of a molecule by central finite fields.
 
-Six self-consistent calculations at fields ``±h e_a`` (a = x, y, z) at fixed nuclei give
+Six self-consistent calculations at fields ``F0 ± h e_a`` (a = x, y, z; ``F0`` a base field,
+zero by default) at fixed nuclei give
 ``alpha_ij = (mu_i(+h e_j) - mu_i(-h e_j)) / (2 h)`` (e·Å²/V; symmetrised) and, with forces,
 the Born charges ``Z*_a,ib = dF_ib / dE_a = dmu_a / dR_ib`` (e). Each calculation can be kept as
 a small file ``CACHE/field_{x,y,z}{+,-}.npz`` (written atomically), so a run resumes per field,
@@ -69,7 +70,7 @@ class FiniteFieldResponse:
 def finite_field_response(labeler: Callable, numbers: np.ndarray, positions: np.ndarray,
                           step_au: float = 1e-3, forces: bool = False,
                           cache: str | Path | None = None, charge: float = 0.0,
-                          ) -> FiniteFieldResponse:
+                          base_field: np.ndarray | None = None) -> FiniteFieldResponse:
     """The six central finite-field calculations of a molecule at fixed nuclei.
 
     Args:
@@ -80,9 +81,13 @@ def finite_field_response(labeler: Callable, numbers: np.ndarray, positions: np.
         numbers, positions: the molecule (Å).
         step_au: field step (au; 1e-3 as the eQM7 study's references).
         forces: also compute forces (Born charges).
-        cache: folder of the per-field files (None: nothing kept).
+        cache: folder of the per-field files (None: nothing kept; each records its field, and
+            one computed at another field raises :class:`FiniteFieldError`).
+        base_field: the field (V/Å) about which the derivative is taken (default zero), e.g.
+            a training configuration's own field.
     """
     f = step_au * FIELD_AU_IN_V_PER_A
+    base = np.zeros(3) if base_field is None else np.asarray(base_field, dtype=float).reshape(3)
     n = len(numbers)
     dip = np.zeros((3, 2, 3))
     frc = np.zeros((3, 2, n, 3)) if forces else None
@@ -90,20 +95,28 @@ def finite_field_response(labeler: Callable, numbers: np.ndarray, positions: np.
         for k, sign in enumerate((1.0, -1.0)):
             path = None if cache is None else Path(cache) / f"field_{'xyz'[a]}{'+-'[k]}.npz"
             saved = None
+            field = base.copy()
+            field[a] += sign * f
             if path is not None and path.exists():
                 with np.load(path) as d:
                     saved = {key: d[key] for key in d.files}
+                if "field" in saved:
+                    kept = saved["field"]
+                else:  # a file written before the fields were recorded: zero base field
+                    kept = np.zeros(3)
+                    kept[a] = sign * f
+                if not np.allclose(kept, field, rtol=0.0, atol=1e-12):
+                    raise FiniteFieldError(f"{path}: computed at field {kept} V/Å, not at"
+                                           f" {field}")
                 if forces and "forces" not in saved:
                     saved = None  # kept without forces: compute again
             if saved is None:
-                field = np.zeros(3)
-                field[a] = sign * f
                 r = labeler(numbers, positions, field=field, charge=charge, forces=forces,
                             localize=False)
                 if not r.ok:
                     raise FiniteFieldError(f"calculation under field {field} V/Å failed:"
                                            f" {r.error}")
-                saved = {"dipole": np.asarray(r.dipole)}
+                saved = {"dipole": np.asarray(r.dipole), "field": field}
                 if forces:
                     saved["forces"] = np.asarray(r.forces)
                 if path is not None:
