@@ -10,8 +10,9 @@ start, their values do not change the cost) go on 4 configurations of each batch
 Hessian is positive definite there (so that all 4 enter the term). Settings alternate block
 by block in one process on the same batches (the machine is shared: only the ratios mean
 something), the weights held (each step's loss and backward; no optimizer update, which costs
-the same in every setting and would change which labels enter); ``value only``: the term's polarizabilities without their graph (the exact pair
-Hessians and the solves), to split its cost.
+the same in every setting and would change which labels enter); ``value only``: the term's
+polarizabilities without their graph (the exact pair Hessians and the solves), to split its
+cost.
 
 Usage: OMP_NUM_THREADS=1 python benchmarks/polarizability_loss.py --json polarizability_loss.json
        [--data datasets/mini-eqm7] [--steps 10] [--repeats 4] [--labelled 4]
