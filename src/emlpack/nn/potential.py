@@ -30,6 +30,7 @@ from emlpack.nn.scatter import segment_sum
 from emlpack.nn.short_range import (
     HeldEdges,
     HoldsEdges,
+    LengthGradient,
     build_short_range,
     family_defaults,
     resolve_params,
@@ -196,19 +197,7 @@ class EMLP(nn.Module):
         atomic = self.atomic_energies(g, pos, cell, held)
         b = g.n_structures
         e_sr = segment_sum(atomic, g.batch, b)
-        c = self.config
-        # Electrostatics always in float64: its pair and self terms cancel to ~1e-2 of their
-        # size, which costs float32 models 1e-4 eV; it is cheap next to the short range.
-        p64, q64, c64 = pos.double(), g.charges.double(), cell.double()
-        if long_range:
-            e_lr = coulomb_molecular(
-                p64, q64, g.coulomb_i, g.coulomb_j, g.batch, ~g.pbc, b, c.gamma, c.coulomb_eps
-            ) + ewald_reciprocal(p64, q64, g.batch, c64, g.kvec_n.double(), g.kvec_batch,
-                                 c.gamma)
-            e_lr = e_lr.to(pos.dtype)
-        else:
-            e_lr = pos.new_zeros(b)
-        e_field = field_energy(p64, q64, g.batch, field.double()).to(pos.dtype)
+        e_lr, e_field = self.electrostatic_energies(g, pos, cell, field, long_range)
         return {
             "energy": e_sr + e_lr + e_field,
             "energy_short_range": e_sr,
@@ -216,6 +205,33 @@ class EMLP(nn.Module):
             "energy_field": e_field,
             "atomic_energies": atomic,
         }
+
+    def electrostatic_energies(
+        self,
+        g: Graph,
+        positions: torch.Tensor,
+        cell: torch.Tensor,
+        field: torch.Tensor,
+        long_range: bool = True,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The Gaussian-charge Coulomb energy (molecules: direct sum; crystals: reciprocal
+        Ewald) and the field energy ``-mu . E`` (eV), (B,) each, in ``positions``' dtype;
+        ``long_range=False``: the Coulomb energy is zero. No parameters enter."""
+        c = self.config
+        b = g.n_structures
+        # Electrostatics always in float64: its pair and self terms cancel to ~1e-2 of their
+        # size, which costs float32 models 1e-4 eV; it is cheap next to the short range.
+        p64, q64, c64 = positions.double(), g.charges.double(), cell.double()
+        if long_range:
+            e_lr = coulomb_molecular(
+                p64, q64, g.coulomb_i, g.coulomb_j, g.batch, ~g.pbc, b, c.gamma, c.coulomb_eps
+            ) + ewald_reciprocal(p64, q64, g.batch, c64, g.kvec_n.double(), g.kvec_batch,
+                                 c.gamma)
+            e_lr = e_lr.to(positions.dtype)
+        else:
+            e_lr = positions.new_zeros(b)
+        e_field = field_energy(p64, q64, g.batch, field.double()).to(positions.dtype)
+        return e_lr, e_field
 
     @staticmethod
     def edge_vectors(
@@ -275,13 +291,22 @@ class EMLP(nn.Module):
         forces: bool = True,
         stress: bool = False,
         create_graph: bool | None = None,
+        parameters_only: bool = False,
+        compiled: bool = False,
     ) -> dict[str, torch.Tensor]:
         """Energies, and forces (eV/Å, every particle) and stress (eV/Å^3) when asked.
 
         ``create_graph`` defaults to ``self.training`` (forces in the loss need it).
+        ``parameters_only`` (training): the outputs are differentiable in the parameters only,
+        not in the positions (:meth:`_forward_parameters_only`, the same values; one
+        backward pass for a family with the capability
+        :class:`~emlpack.nn.short_range.protocol.LengthGradient`, through ``torch.compile``
+        with ``compiled``).
         """
         if create_graph is None:
             create_graph = self.training
+        if parameters_only and create_graph and (forces or stress):
+            return self._forward_parameters_only(g, stress, compiled)
         pos = g.positions
         cell = g.cell
         inputs = []
@@ -302,15 +327,66 @@ class EMLP(nn.Module):
             )
             out["forces"] = -grads[0]
         if stress:
-            dipole = self.dipole(g, pos)
-            virial_with_field = grads[1]
-            virial = virial_with_field + dipole[:, :, None] * g.field[:, None, :]
-            volume = torch.abs(torch.linalg.det(g.cell))
-            volume = torch.where(g.pbc, volume, torch.ones_like(volume))
-            out["virial_including_field"] = virial_with_field
-            out["virial"] = virial
-            out["stress"] = virial / volume[:, None, None]
+            out.update(self._stress(g, pos, grads[1]))
         return out
+
+    def _forward_parameters_only(
+        self, g: Graph, stress: bool, compiled: bool
+    ) -> dict[str, torch.Tensor]:
+        """:meth:`forward`'s outputs as functions of the parameters only (training).
+
+        The electrostatic and field parts hold no parameters: their energies, forces and
+        virial are computed without a graph. The short range's forces and virial come from
+        ``dE/dd`` of the half-list edge vectors ``d`` (``F_i += dE/dd_e``, ``F_j -= dE/dd_e``,
+        virial ``sum_e d_e (x) dE/dd_e``): from the family's written-out length gradient
+        (capability :class:`~emlpack.nn.short_range.protocol.LengthGradient`,
+        ``dE/dd = dE/dr d / r``) or by autograd in ``d`` with ``create_graph=True``."""
+        n, b = g.positions.shape[0], g.n_structures
+        with torch.enable_grad():
+            pos = g.positions.detach().requires_grad_(True)
+            inputs, pos_s, cell = [pos], pos, g.cell.detach()
+            if stress:
+                strain = torch.zeros_like(cell, requires_grad=True)
+                inputs.append(strain)
+                pos_s = pos + torch.einsum("na,nab->nb", pos, strain[g.batch])
+                cell = cell + torch.bmm(cell, strain)
+            e_lr, e_field = self.electrostatic_energies(g, pos_s, cell, g.field)
+            grads = torch.autograd.grad((e_lr + e_field).sum(), inputs)
+        d = self.edge_vectors(g, g.positions.detach(), g.cell.detach())
+        sr = self.short_range
+        if isinstance(sr, LengthGradient):
+            r = edge_lengths(d)
+            atomic, dedr = sr.energies_and_length_gradient(g.numbers, r, g.edge_i, g.edge_j,
+                                                           compiled=compiled)
+            ded = (dedr / r)[:, None] * d
+        else:
+            d = d.requires_grad_(True)
+            atomic = sr(g.numbers, d, g.edge_i, g.edge_j)
+            (ded,) = torch.autograd.grad(atomic.sum(), d, create_graph=True)
+            d = d.detach()
+        forces = segment_sum(ded, g.edge_i, n) - segment_sum(ded, g.edge_j, n) - grads[0]
+        e_sr = segment_sum(atomic, g.batch, b)
+        e_lr, e_field = e_lr.detach(), e_field.detach()
+        out = {"energy": e_sr + e_lr + e_field, "energy_short_range": e_sr,
+               "energy_long_range": e_lr, "energy_field": e_field, "atomic_energies": atomic,
+               "forces": forces}
+        if stress:
+            virial_sr = segment_sum(d[:, :, None] * ded[:, None, :], g.batch[g.edge_i], b)
+            out.update(self._stress(g, g.positions, grads[1] + virial_sr))
+        return out
+
+    def _stress(
+        self, g: Graph, positions: torch.Tensor, virial_with_field: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
+        """``virial_including_field`` (the strain derivative ``dE/d(eps)``, eV), ``virial``
+        (without the field term's ``-mu (x) E``) and ``stress`` (``virial / V``, eV/Å^3; V = 1
+        for molecules), (B, 3, 3) each, from ``dE/d(eps)``."""
+        dipole = self.dipole(g, positions)
+        virial = virial_with_field + dipole[:, :, None] * g.field[:, None, :]
+        volume = torch.abs(torch.linalg.det(g.cell))
+        volume = torch.where(g.pbc, volume, torch.ones_like(volume))
+        return {"virial_including_field": virial_with_field, "virial": virial,
+                "stress": virial / volume[:, None, None]}
 
     @staticmethod
     def dipole(g: Graph, positions: torch.Tensor | None = None) -> torch.Tensor:

@@ -27,3 +27,24 @@ def pair_blocks_to_matrix(
     index = torch.cat([i * (n + 1), j * (n + 1), i * n + j, j * n + i])
     out = segment_sum(torch.cat([blocks, blocks, -blocks, -blocks]), index, n * n)
     return out.reshape(n, n, 3, 3).permute(0, 2, 1, 3).reshape(3 * n, 3 * n)
+
+
+def convolve(
+    a: torch.Tensor,
+    w: torch.Tensor,
+    i: torch.Tensor,
+    j: torch.Tensor,
+    out: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """``conv_i = sum_j a_j * w_ij`` over the half list, each pair scattered both ways (added
+    to ``out`` when given, without changing it).
+
+    ``index_select`` + ``scatter_add`` rather than ``a[j]``, ``torch.cat`` and ``index_add_``:
+    the backward of advanced indexing is an accumulating ``index_put_`` (it sorts), the cat
+    copies both message halves, and the parallel ``index_add_`` stalls when the 2 cores are
+    busy (see above).
+    """
+    k = a.shape[1]
+    out = torch.zeros_like(a) if out is None else out
+    out = out.scatter_add(0, i[:, None].expand(-1, k), a.index_select(0, j) * w)
+    return out.scatter_add(0, j[:, None].expand(-1, k), a.index_select(0, i) * w)

@@ -85,11 +85,16 @@ class LossWeights:
 
 def predict(model: torch.nn.Module, batch: Batch,
             reference: HydrideReference | ConstantReference, stress: bool | None = None,
-            create_graph: bool | None = None) -> dict[str, torch.Tensor]:
+            create_graph: bool | None = None, compiled: bool = False,
+            parameters_only: bool = True) -> dict[str, torch.Tensor]:
     """Model outputs for ``batch``: ``energy`` (B,) relative to the (live) reference,
-    ``forces`` (N_graph, 3), ``stress`` (B, 3, 3) when requested."""
+    ``forces`` (N_graph, 3), ``stress`` (B, 3, 3) when requested. With a graph (training)
+    they are differentiable in the parameters only (``EMLP.forward``'s ``parameters_only``;
+    ``compiled``: through ``torch.compile`` where the family allows); ``parameters_only=False``:
+    in the positions too (the double backward, as before 2026-12-02)."""
     want_stress = bool(batch.has_stress.any()) if stress is None else stress
-    out = model(batch.graph, forces=True, stress=want_stress, create_graph=create_graph)
+    out = model(batch.graph, forces=True, stress=want_stress, create_graph=create_graph,
+                parameters_only=parameters_only, compiled=compiled)
     pred = {"energy": reference.correct(out["energy"], batch.coefficients),
             "energy_raw": out["energy"][: batch.n_structures], "forces": out["forces"]}
     if want_stress:

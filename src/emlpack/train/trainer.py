@@ -139,6 +139,8 @@ class Trainer:
         if t["threads"]:
             torch.set_num_threads(int(t["threads"]))
         self.dtype = DTYPES[t["dtype"]]
+        #: the training step through torch.compile (``training.compile``)
+        self.compiled = bool(t.get("compile", False))
         self.run_dir = Path(cfg["output"]["dir"])
         self.weights = LossWeights(**cfg["loss"])
         d = cfg["data"]
@@ -168,9 +170,11 @@ class Trainer:
         torch.manual_seed(t["seed"])
         self.model = EMLP(self.model_config).to(self.dtype).to(self.device)
         frozen = self._frozen_names(t.get("freeze") or [])
+        # fused: one kernel for all parameters (the same update; measured on the study's
+        # model, 1 thread: 0.8 against 3.8 ms a step for the default loop)
         self.optimizer = torch.optim.Adam(
             [p for n, p in self.model.named_parameters() if n not in frozen], lr=t["lr"],
-            eps=t["adam_eps"])
+            eps=t["adam_eps"], fused=self.device.type in ("cpu", "cuda"))
         #: what the loss is differentiated with respect to (:meth:`_train_epoch`)
         self.trained_parameters = [p for g in self.optimizer.param_groups for p in g["params"]]
         #: earlier stages of this model (:meth:`init_weights`), then this run (:meth:`metadata`)
@@ -466,7 +470,7 @@ class Trainer:
                            unit="batch", enabled=progress, leave=False, lines=False)
         for batch in bar:
             batch = batch.to(self.device)
-            pred = predict(self.ddp, batch, self.reference)
+            pred = predict(self.ddp, batch, self.reference, compiled=self.compiled)
             if "polarizability" in names:  # the plain model: the term adds its own graph
                 pred.update(predict_polarizability(self.model, batch))
             terms = loss_terms(pred, batch)

@@ -51,6 +51,13 @@ module's class). Every caller has an exact generic path for a family without the
   (:func:`emlpack.nn.short_range.hessian.short_range_hessian`). Generic path: reverse over
   reverse on the short-range energy.
 
+* :class:`LengthGradient`: ``energies_and_length_gradient(numbers, r, i, j, compiled)``
+  returns the atomic energies (N,) and ``dE/dr`` (E,) of their sum in the edge lengths as
+  one expression that is differentiable once in the parameters (the reverse pass written
+  out), for families whose energy depends on the edges through their lengths only; training
+  then fits forces with one backward pass, optionally compiled (SchNet:
+  :mod:`emlpack.nn.short_range.schnet_gradient`). Generic path: ``dE/d(vectors)`` by
+  autograd with ``create_graph=True`` (a double backward).
 * :class:`FrozenAnyDtype`: with frozen parameters the family evaluates in the dtype of its
   input vectors whatever its parameters' dtype (SchNet casts its folded weights); the pair
   relaxation's float32 phase then runs on the float64 model. Generic path: that phase runs
@@ -68,8 +75,8 @@ from typing import Protocol, runtime_checkable
 
 import torch
 
-__all__ = ["FrozenAnyDtype", "HeldEdges", "HoldsEdges", "LengthHessian", "ShortRange",
-           "TabulatesEdges"]
+__all__ = ["FrozenAnyDtype", "HeldEdges", "HoldsEdges", "LengthGradient", "LengthHessian",
+           "ShortRange", "TabulatesEdges"]
 
 
 @runtime_checkable
@@ -143,6 +150,24 @@ class LengthHessian(Protocol):
         """``(dE/dr (E,), J^T (d2E/dr dr) J (m, m))`` of the summed energy (eV, Å) of one
         structure with edge lengths ``r`` (E,) and Jacobian ``jac = dr/dx`` (E, m);
         ``tangent_dtype``: dtype of the directional derivatives (None: ``r``'s)."""
+        ...
+
+
+@runtime_checkable
+class LengthGradient(Protocol):
+    """Capability: energies and their length gradient as one first-order expression."""
+
+    def energies_and_length_gradient(
+        self,
+        numbers: torch.Tensor,
+        r: torch.Tensor,
+        i: torch.Tensor,
+        j: torch.Tensor,
+        compiled: bool = False,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Atomic energies (N,) (eV) and ``dE/dr`` (E,) (eV/Å) of their sum in the edge
+        lengths ``r`` (E,) (Å), differentiable in the parameters (not in ``r``);
+        ``compiled``: through ``torch.compile`` where it works."""
         ...
 
 

@@ -34,6 +34,7 @@ import torch
 from torch import nn
 from torch.autograd.function import once_differentiable
 
+from emlpack.nn.scatter import convolve
 from emlpack.nn.short_range.common import (
     LN2,
     cosine_cutoff,
@@ -41,6 +42,7 @@ from emlpack.nn.short_range.common import (
     shifted_softplus,
     softplus_slopes,
 )
+from emlpack.nn.short_range.schnet_gradient import energies_and_length_gradient, radial_taylor
 from emlpack.nn.short_range.schnet_hessian import schnet_edge_hessian
 from emlpack.structure import PAIR_NUMBER
 
@@ -60,27 +62,6 @@ SCHNET_DEFAULTS = {
     "rbf_end": 4.0,
     "message_norm": 70.0,
 }
-
-
-def convolve(
-    a: torch.Tensor,
-    w: torch.Tensor,
-    i: torch.Tensor,
-    j: torch.Tensor,
-    out: torch.Tensor | None = None,
-) -> torch.Tensor:
-    """``conv_i = sum_j a_j * w_ij`` over the half list, each pair scattered both ways (added
-    to ``out`` when given, without changing it).
-
-    ``index_select`` + ``scatter_add`` rather than ``a[j]``, ``torch.cat`` and ``index_add_``:
-    the backward of advanced indexing is an accumulating ``index_put_`` (it sorts), the cat
-    copies both message halves, and the parallel ``index_add_`` stalls when the 2 cores are
-    busy (see :mod:`emlpack.nn.scatter`).
-    """
-    k = a.shape[1]
-    out = torch.zeros_like(a) if out is None else out
-    out = out.scatter_add(0, i[:, None].expand(-1, k), a.index_select(0, j) * w)
-    return out.scatter_add(0, j[:, None].expand(-1, k), a.index_select(0, i) * w)
 
 
 class _CubicTable(torch.autograd.Function):
@@ -424,19 +405,7 @@ class SchNet(nn.Module):
         (``x > 20``: slope 1, curvature 0), so they equal autograd's exactly.
         """
         fw = self.folded_weights(r.dtype, r.device)
-        width = self.rbf.width
-        diff = r[:, None] - self.rbf.centers.to(r.dtype)
-        rbf = torch.exp(-0.5 * (diff / width) ** 2)
-        rbf1 = -diff / width**2 * rbf
-        rbf2 = ((diff / width**2) ** 2 - 1.0 / width**2) * rbf
-        start, tr = self.cutoff - self.cutoff_transition, self.cutoff_transition
-        x = (r - start) / tr
-        inside = (x >= 0.0) & (x <= 1.0)
-        xc = torch.clamp(x, 0.0, 1.0)
-        fc = (0.5 * (1.0 + torch.cos(math.pi * xc)))[:, None]
-        fc1 = torch.where(inside, -0.5 * math.pi / tr * torch.sin(math.pi * xc), 0.0)[:, None]
-        fc2 = torch.where(inside, -0.5 * (math.pi / tr) ** 2 * torch.cos(math.pi * xc), 0.0)
-        fc2 = fc2[:, None]
+        (rbf, rbf1, rbf2), (fc, fc1, fc2) = radial_taylor(self, r, order=2)
         out = []
         for w1, b1, w2, b2, _, _ in fw["filters"]:
             z1 = torch.addmm(b1, rbf, w1)
@@ -517,6 +486,18 @@ class SchNet(nn.Module):
         """Capability :class:`~emlpack.nn.short_range.protocol.LengthHessian`:
         :func:`~emlpack.nn.short_range.schnet_hessian.schnet_edge_hessian`."""
         return schnet_edge_hessian(self, numbers, r, i, j, jac, tangent_dtype=tangent_dtype)
+
+    def energies_and_length_gradient(
+        self,
+        numbers: torch.Tensor,
+        r: torch.Tensor,
+        i: torch.Tensor,
+        j: torch.Tensor,
+        compiled: bool = False,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Capability :class:`~emlpack.nn.short_range.protocol.LengthGradient`:
+        :func:`~emlpack.nn.short_range.schnet_gradient.energies_and_length_gradient`."""
+        return energies_and_length_gradient(self, numbers, r, i, j, compiled=compiled)
 
     @staticmethod
     def _filter(f: tuple[torch.Tensor, ...], rbf: torch.Tensor, fc: torch.Tensor) -> torch.Tensor:

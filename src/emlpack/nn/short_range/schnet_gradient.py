@@ -1,0 +1,191 @@
+"""SchNet's atomic energies and the gradient of their sum in the edge lengths, written out.
+
+Training fits forces, so its loss depends on ``dE/dr``: through autograd that is a reverse
+pass taken with ``create_graph=True`` and then differentiated again (a double backward with
+about 4,300 small operators per mini-eQM7 step). Here the reverse pass is written out by hand
+as ordinary tensor operations (:func:`energies_and_length_gradient`), so that energies and
+``dE/dr`` are one first-order expression of the parameters: the loss then needs one backward
+pass, and the whole expression can be compiled (``torch.compile``: elementwise chains fused
+into the matrix products' neighbours) because nothing in it calls autograd.
+
+With ``y = ssp(x) = softplus(x) - ln 2`` and ``s(x) = dy/dx`` (torch's softplus slope: the
+logistic function, 1 above its threshold 20), one interaction ``t`` is, forward::
+
+    w   = ssp(ssp(rbf W1 + b1) W2 + b2) f_c          (E, K), the filters
+    a   = h Win + bin;  conv = S(a, w) / J           (N, K), S: both ways over the half list
+    h  += ssp(conv Wc + bc) W3 + b3
+
+and backward, from ``g = dE/dh`` after the output network::
+
+    gc  = ((g W3^T) * s(z3)) Wc^T / J                (dE/dconv)
+    gw  = a_j * gc_i + a_i * gc_j                    (dE/dw per edge)
+    g  += S(gc, w) Win^T
+    dE/dr += sum_k gw (dw/dr)_k
+
+with ``dw/dr`` in forward mode through the filter network, from the basis' derivative
+``drbf/dr`` and ``f_c'`` (:func:`radial_taylor`): value and derivative share each matrix
+product (stacked rows), and the first layers of all interactions are one product.
+
+The basis, the cutoff and their derivatives depend on the geometry only: computed once per
+batch, without gradients. Float64 results equal autograd's to rounding (1e-15 relative,
+``tests/nn/test_schnet_gradient.py``).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import torch
+from torch import nn
+
+from emlpack.nn.scatter import convolve
+from emlpack.nn.short_range.common import LN2
+
+if TYPE_CHECKING:
+    from emlpack.nn.short_range.schnet import SchNet
+
+__all__ = ["energies_and_length_gradient", "radial_taylor", "schnet_weights"]
+
+#: weights per interaction in :func:`schnet_weights` (filter1, filter2, atom_in, conv_out,
+#: atom_out: weight and bias each)
+_PER_INTERACTION = 10
+
+
+def radial_taylor(schnet: SchNet, r: torch.Tensor, order: int) -> list[tuple[torch.Tensor, ...]]:
+    """The Gaussian basis (E, n_rbf) and the cosine cutoff (E, 1) at the edge lengths ``r``
+    (E,) (Å) with their derivatives in ``r`` up to ``order`` (1 or 2): ``[(rbf, rbf', ...),
+    (f_c, f_c', ...)]`` (1/Å, 1/Å^2). The cutoff's derivatives are those of the cosine on the
+    switch, 0 elsewhere (one-sided at its ends, as autograd takes them)."""
+    width = schnet.rbf.width
+    diff = r[:, None] - schnet.rbf.centers.to(r.dtype)
+    rbf = torch.exp(-0.5 * (diff / width) ** 2)
+    basis = [rbf, -diff / width**2 * rbf]
+    if order >= 2:
+        basis.append(((diff / width**2) ** 2 - 1.0 / width**2) * rbf)
+    start, tr = schnet.cutoff - schnet.cutoff_transition, schnet.cutoff_transition
+    x = (r - start) / tr
+    inside = (x >= 0.0) & (x <= 1.0)
+    xc = torch.clamp(x, 0.0, 1.0)
+    cut = [(0.5 * (1.0 + torch.cos(math.pi * xc)))[:, None],
+           torch.where(inside, -0.5 * math.pi / tr * torch.sin(math.pi * xc), 0.0)[:, None]]
+    if order >= 2:
+        cut.append(torch.where(inside, -0.5 * (math.pi / tr) ** 2 * torch.cos(math.pi * xc),
+                               0.0)[:, None])
+    return [tuple(basis), tuple(cut)]
+
+
+def schnet_weights(schnet: SchNet) -> list[torch.Tensor]:
+    """The parameters in :func:`energies_and_length_gradient`'s order: the embedding, per
+    interaction the weight and bias of filter1, filter2, atom_in, conv_out, atom_out, then
+    the three output layers' weights and biases."""
+    out = [schnet.embedding.weight]
+    for b in schnet.interactions:
+        for layer in (b.filter1, b.filter2, b.atom_in, b.conv_out, b.atom_out):
+            out += [layer.weight, layer.bias]
+    for layer in schnet.output:
+        out += [layer.weight, layer.bias]
+    return out
+
+
+def _slope(x: torch.Tensor) -> torch.Tensor:
+    """d softplus(x)/dx as torch's autograd takes it (1 above the threshold 20)."""
+    return torch.where(x > 20.0, 1.0, torch.sigmoid(x))
+
+
+def _ssp(x: torch.Tensor) -> torch.Tensor:
+    return nn.functional.softplus(x) - LN2
+
+
+def _energies_and_gradient(
+    weights: list[torch.Tensor],
+    numbers: torch.Tensor,
+    rbf: torch.Tensor,
+    drbf: torch.Tensor,
+    fc: torch.Tensor,
+    dfc: torch.Tensor,
+    i: torch.Tensor,
+    j: torch.Tensor,
+    norm: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The module docstring's forward and backward on plain tensors (compilable)."""
+    linear = nn.functional.linear
+    n_int = (len(weights) - 7) // _PER_INTERACTION
+    blocks = [weights[1 + _PER_INTERACTION * t: 1 + _PER_INTERACTION * (t + 1)]
+              for t in range(n_int)]
+    w_o0, b_o0, w_o1, b_o1, w_o2, b_o2 = weights[1 + _PER_INTERACTION * n_int:]
+    n_edges = rbf.shape[0]
+    # the filters and their derivative in r (forward mode), the first layer of every
+    # interaction in one product of the basis and its derivative stacked: (2E, n_rbf)
+    first = linear(torch.cat([rbf, drbf]), torch.cat([b[0] for b in blocks]))
+    filters, slopes = [], []
+    for t, (_, b1, w2, b2, *_) in enumerate(blocks):
+        z1, t1 = first[:, t * b1.shape[0]:(t + 1) * b1.shape[0]].split(n_edges)
+        z1 = z1 + b1
+        second = linear(torch.cat([_ssp(z1), _slope(z1) * t1]), w2)
+        z2, t2 = second.split(n_edges)
+        z2 = z2 + b2
+        y2 = _ssp(z2)
+        filters.append(y2 * fc)
+        slopes.append(_slope(z2) * t2 * fc + y2 * dfc)  # dw/dr (E, K)
+    h = weights[0].index_select(0, numbers).to(rbf.dtype)
+    saved = []
+    for (*_, w_in, b_in, w_c, b_c, w3, b3), w in zip(blocks, filters, strict=True):
+        a = linear(h, w_in, b_in)
+        z3 = linear(convolve(a, w, i, j) / norm, w_c, b_c)
+        h = h + linear(_ssp(z3), w3, b3)
+        saved.append((a, z3))
+    p0 = linear(h, w_o0, b_o0)
+    p1 = linear(_ssp(p0), w_o1, b_o1)
+    energies = linear(_ssp(p1), w_o2, b_o2).squeeze(-1)
+    # reverse pass: g = dE/dh, every step an ordinary (differentiable) operation
+    g = ((_slope(p1) * w_o2) @ w_o1) * _slope(p0) @ w_o0
+    dedr = torch.zeros_like(rbf[:, 0])
+    for (*_, w_in, _, w_c, _, w3, _), w, dw, (a, z3) in zip(
+            reversed(blocks), reversed(filters), reversed(slopes), reversed(saved), strict=True):
+        gc = ((g @ w3) * _slope(z3)) @ w_c / norm
+        gw = (a.index_select(0, j) * gc.index_select(0, i)
+              + a.index_select(0, i) * gc.index_select(0, j))
+        g = g + convolve(gc, w, i, j) @ w_in
+        dedr = dedr + (gw * dw).sum(1)
+    return energies, dedr
+
+
+_COMPILED: dict[str, Callable] = {}
+
+
+def _compiled() -> Callable:
+    """:func:`_energies_and_gradient` compiled once per process (dynamic shapes: one
+    compilation serves every batch size)."""
+    if "fn" not in _COMPILED:
+        _COMPILED["fn"] = torch.compile(_energies_and_gradient, dynamic=True)
+    return _COMPILED["fn"]
+
+
+def energies_and_length_gradient(
+    schnet: SchNet,
+    numbers: torch.Tensor,
+    r: torch.Tensor,
+    i: torch.Tensor,
+    j: torch.Tensor,
+    compiled: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Atomic energies (N,) (eV) and ``dE/dr`` (E,) (eV/Å) of their sum in the half-list edge
+    lengths ``r`` (E,) (Å) of the edges ``(i, j)``, both differentiable (once) in the
+    parameters and not in ``r``; ``compiled``: through ``torch.compile`` (the first call
+    compiles, about a minute; a compiler error falls back to the plain evaluation with a
+    warning)."""
+    with torch.no_grad():
+        (rbf, drbf), (fc, dfc) = radial_taylor(schnet, r.detach(), order=1)
+    args = (schnet_weights(schnet), numbers, rbf, drbf, fc, dfc, i, j,
+            float(schnet.message_norm))
+    if compiled and "failed" not in _COMPILED:
+        try:
+            return _compiled()(*args)
+        except Exception as err:  # noqa: BLE001 (inductor raises many kinds; fall back)
+            _COMPILED["failed"] = repr(err)
+            warnings.warn(f"torch.compile of the SchNet training step failed ({err!r:.200});"
+                          " training goes on uncompiled", RuntimeWarning, stacklevel=2)
+    return _energies_and_gradient(*args)

@@ -1,0 +1,90 @@
+"""The training forward (``EMLP.forward(parameters_only=True)``): the same values as the plain
+forward, and the same parameter gradients of a force and stress loss, for every family;
+SchNet's written-out length gradient against autograd."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from emlpack.nn.graph import collate
+from emlpack.nn.short_range import LengthGradient
+from emlpack.nn.short_range.common import edge_lengths
+from tests.nn.helpers import (
+    FAMILY_PARAMS,
+    methane,
+    random_model,
+    water_crystal,
+    water_molecule,
+)
+
+FAMILIES = sorted(FAMILY_PARAMS)
+
+
+def _loss(out: dict) -> torch.Tensor:
+    loss = (out["energy"] ** 2).sum() + (out["forces"] ** 3).sum()
+    if "stress" in out:
+        loss = loss + 1e3 * (out["stress"] ** 2).sum()
+    return loss
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+@pytest.mark.parametrize("crystal", [False, True], ids=["molecules", "crystal"])
+def test_parameters_only_forward_equals_the_plain_one(family, crystal):
+    """Energies, forces, stress and every parameter gradient of a loss made of them: the
+    training path against the double backward through the positions (float64)."""
+    model = random_model(family=family).train()
+    structures = [water_crystal(field=(0.01, -0.02, 0.03))] if crystal else [
+        water_molecule(), methane(field=(0.02, 0.0, -0.01))]
+    g = collate(structures, model.config.cutoff, model.config.gcut, torch.float64)
+    params = [p for p in model.parameters() if p.requires_grad]
+    plain = model(g, stress=crystal, create_graph=True)
+    fast = model(g, stress=crystal, create_graph=True, parameters_only=True)
+    keys = ["energy", "energy_short_range", "energy_long_range", "energy_field", "forces"]
+    keys += ["stress", "virial", "virial_including_field"] if crystal else []
+    for key in keys:
+        np.testing.assert_allclose(fast[key].detach(), plain[key].detach(), rtol=1e-12,
+                                   atol=1e-12, err_msg=key)
+    g_plain = torch.autograd.grad(_loss(plain), params, allow_unused=True)
+    g_fast = torch.autograd.grad(_loss(fast), params, allow_unused=True)
+    for (name, _), a, b in zip(model.named_parameters(), g_plain, g_fast, strict=True):
+        if a is None:
+            assert b is None or not b.any(), name
+            continue
+        scale = float(a.abs().max()) + 1e-30
+        assert float((a - b).abs().max()) <= 1e-11 * scale, name
+
+
+def test_parameters_only_forces_are_not_differentiable_in_the_positions():
+    """Training path outputs hold no graph to the positions: nothing to differentiate."""
+    model = random_model().train()
+    g = model.graph(water_molecule())
+    out = model(g, create_graph=True, parameters_only=True)
+    assert out["forces"].requires_grad  # through the parameters
+    frozen = random_model().train()
+    for p in frozen.parameters():
+        p.requires_grad_(False)
+    out = frozen(frozen.graph(water_molecule()), create_graph=True, parameters_only=True)
+    assert not out["forces"].requires_grad
+
+
+def test_schnet_length_gradient_equals_autograd():
+    """Energies and dE/dr of the written-out reverse pass against autograd (float64 to
+    rounding, float32 to its precision), including a pair on a core (r ~ 1e-10 Å) and edges
+    on the cosine switch."""
+    for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 2e-5)):
+        model = random_model(dtype=dtype)
+        sr = model.short_range
+        assert isinstance(sr, LengthGradient)
+        g = model.graph(water_crystal(), dtype=dtype)
+        r = edge_lengths(model.edge_vectors(g, g.positions, g.cell)).detach()
+        r[0] = 1e-10
+        assert bool(((r > 3.5) & (r < 4.0)).any())
+        rr = r.clone().requires_grad_(True)
+        e_ref = sr.energies_from_lengths(g.numbers, rr, g.edge_i, g.edge_j)
+        (d_ref,) = torch.autograd.grad(e_ref.sum(), rr)
+        e, d = sr.energies_and_length_gradient(g.numbers, r, g.edge_i, g.edge_j)
+        np.testing.assert_allclose(e.detach(), e_ref.detach(), rtol=0,
+                                   atol=tol * float(e_ref.detach().abs().max()))
+        np.testing.assert_allclose(d.detach(), d_ref, rtol=0, atol=tol * float(d_ref.abs().max()))
