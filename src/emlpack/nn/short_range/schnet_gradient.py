@@ -59,13 +59,18 @@ def radial_taylor(schnet: SchNet, r: torch.Tensor, order: int) -> list[tuple[tor
     (E,) (Å) with their derivatives in ``r`` up to ``order`` (1 or 2): ``[(rbf, rbf', ...),
     (f_c, f_c', ...)]`` (1/Å, 1/Å^2). The cutoff's derivatives are those of the cosine on the
     switch, 0 elsewhere (one-sided at its ends, as autograd takes them)."""
-    width = schnet.rbf.width
-    diff = r[:, None] - schnet.rbf.centers.to(r.dtype)
+    return _radial_taylor(r, schnet.rbf.centers.to(r.dtype), schnet.rbf.width,
+                          schnet.cutoff - schnet.cutoff_transition, schnet.cutoff_transition,
+                          order)
+
+
+def _radial_taylor(r: torch.Tensor, centers: torch.Tensor, width: float, start: float,
+                   tr: float, order: int) -> list[tuple[torch.Tensor, ...]]:
+    diff = r[:, None] - centers
     rbf = torch.exp(-0.5 * (diff / width) ** 2)
     basis = [rbf, -diff / width**2 * rbf]
     if order >= 2:
         basis.append(((diff / width**2) ** 2 - 1.0 / width**2) * rbf)
-    start, tr = schnet.cutoff - schnet.cutoff_transition, schnet.cutoff_transition
     x = (r - start) / tr
     inside = (x >= 0.0) & (x <= 1.0)
     xc = torch.clamp(x, 0.0, 1.0)
@@ -102,15 +107,16 @@ def _ssp(x: torch.Tensor) -> torch.Tensor:
 def _energies_and_gradient(
     weights: list[torch.Tensor],
     numbers: torch.Tensor,
-    rbf: torch.Tensor,
-    drbf: torch.Tensor,
-    fc: torch.Tensor,
-    dfc: torch.Tensor,
+    r: torch.Tensor,
+    centers: torch.Tensor,
     i: torch.Tensor,
     j: torch.Tensor,
+    radial: tuple[float, float, float],
     norm: float,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The module docstring's forward and backward on plain tensors (compilable)."""
+    """The module docstring's forward and backward on plain tensors (compilable);
+    ``radial``: the basis width, the start and the width of the cutoff's switch (Å)."""
+    (rbf, drbf), (fc, dfc) = _radial_taylor(r, centers, *radial, order=1)
     linear = nn.functional.linear
     n_int = (len(weights) - 7) // _PER_INTERACTION
     blocks = [weights[1 + _PER_INTERACTION * t: 1 + _PER_INTERACTION * (t + 1)]
@@ -177,10 +183,10 @@ def energies_and_length_gradient(
     parameters and not in ``r``; ``compiled``: through ``torch.compile`` (the first call
     compiles, about a minute; a compiler error falls back to the plain evaluation with a
     warning)."""
-    with torch.no_grad():
-        (rbf, drbf), (fc, dfc) = radial_taylor(schnet, r.detach(), order=1)
-    args = (schnet_weights(schnet), numbers, rbf, drbf, fc, dfc, i, j,
-            float(schnet.message_norm))
+    radial = (schnet.rbf.width, schnet.cutoff - schnet.cutoff_transition,
+              schnet.cutoff_transition)
+    args = (schnet_weights(schnet), numbers, r.detach(), schnet.rbf.centers.to(r.dtype), i, j,
+            radial, float(schnet.message_norm))
     if compiled and "failed" not in _COMPILED:
         try:
             return _compiled()(*args)
