@@ -36,16 +36,12 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
 
 from emlpack.nn.scatter import convolve
 from emlpack.nn.short_range.common import LN2
-
-if TYPE_CHECKING:
-    from emlpack.nn.short_range.schnet import SchNet
 
 __all__ = ["energies_and_length_gradient", "radial_taylor", "schnet_weights"]
 
@@ -54,7 +50,7 @@ __all__ = ["energies_and_length_gradient", "radial_taylor", "schnet_weights"]
 _PER_INTERACTION = 10
 
 
-def radial_taylor(schnet: SchNet, r: torch.Tensor, order: int) -> list[tuple[torch.Tensor, ...]]:
+def radial_taylor(schnet: nn.Module, r: torch.Tensor, order: int) -> list[tuple[torch.Tensor, ...]]:
     """The Gaussian basis (E, n_rbf) and the cosine cutoff (E, 1) at the edge lengths ``r``
     (E,) (Å) with their derivatives in ``r`` up to ``order`` (1 or 2): ``[(rbf, rbf', ...),
     (f_c, f_c', ...)]`` (1/Å, 1/Å^2). The cutoff's derivatives are those of the cosine on the
@@ -82,7 +78,7 @@ def _radial_taylor(r: torch.Tensor, centers: torch.Tensor, width: float, start: 
     return [tuple(basis), tuple(cut)]
 
 
-def schnet_weights(schnet: SchNet) -> list[torch.Tensor]:
+def schnet_weights(schnet: nn.Module) -> list[torch.Tensor]:
     """The parameters in :func:`energies_and_length_gradient`'s order: the embedding, per
     interaction the weight and bias of filter1, filter2, atom_in, conv_out, atom_out, then
     the three output layers' weights and biases."""
@@ -171,7 +167,7 @@ def _compiled() -> Callable:
 
 
 def energies_and_length_gradient(
-    schnet: SchNet,
+    schnet: nn.Module,
     numbers: torch.Tensor,
     r: torch.Tensor,
     i: torch.Tensor,
