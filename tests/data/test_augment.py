@@ -147,25 +147,3 @@ def test_an_augmented_configuration_loses_its_polarizability_label(eqm7):
     assert info.augmented and moved.polarizability is None
     kept, info = augment(s, np.random.default_rng(0), AugmentationConfig(probability=0.0))
     assert not info.augmented and kept.polarizability is not None
-
-
-def test_kept_graph_parts_give_the_graphs_built_afresh(eqm7):
-    """The Collater keeps the graph parts of configurations it did not augment: later epochs
-    get the same graphs as a fresh build, and augmented configurations are never kept."""
-    from dataclasses import fields
-
-    from emlpack.nn.graph import collate
-
-    cfg = AugmentationConfig(enabled=True, probability=0.5)
-    items = list(enumerate(eqm7))
-    c = Collater(ConstantReference(0.0), 4.0, 1.0, augmentation=cfg, seed=3)
-    first = c(items)
-    assert 0 < first.n_augmented < len(items) and len(c._parts) == len(items) - first.n_augmented
-    for epoch in (1, 2):
-        c.epoch = epoch
-        kept = c(items[::-1])
-        fresh = collate([augment(s, np.random.default_rng([3, epoch, i]), cfg)[0]
-                         for i, s in items[::-1]], 4.0, 1.0, c.dtype)
-        for f in fields(fresh):
-            assert np.array_equal(getattr(kept.graph, f.name).numpy(),
-                                  getattr(fresh, f.name).numpy()), f.name

@@ -26,7 +26,7 @@ from emlpack.data.augment import AugmentationConfig, augment
 from emlpack.data.references import HYDRIDES, HydrideReference
 from emlpack.data.shards import is_sharded, read_shards
 from emlpack.errors import EmlpackError
-from emlpack.nn.graph import Graph, GraphParts, collate
+from emlpack.nn.graph import Graph, collate
 from emlpack.structure import Structure
 
 if TYPE_CHECKING:
@@ -207,10 +207,7 @@ class Collater:
     """Callable for ``DataLoader(collate_fn=...)``: augmentation, reference, graph, targets.
 
     Augmentation of configuration ``index`` in epoch ``epoch`` uses the generator seeded with
-    ``(seed, epoch, index)``; set :attr:`epoch` before each epoch. The graph parts
-    (:class:`~emlpack.nn.graph.GraphParts`: neighbour list, Coulomb pairs) of every
-    configuration that is not augmented, and of the reference hydrides, are kept by index and
-    reused in later epochs (about 15 kB a mini-eQM7 configuration; the same graphs)."""
+    ``(seed, epoch, index)``; set :attr:`epoch` before each epoch."""
 
     def __init__(self, reference: HydrideReference | ConstantReference, cutoff: float,
                  gcut: float, dtype: torch.dtype = torch.float32,
@@ -220,49 +217,32 @@ class Collater:
         self.augmentation = augmentation
         self.seed = seed
         self.epoch = 0
-        self._parts: dict[int, GraphParts] = {}
-        self._hydride_parts: list[GraphParts] | None = None
 
     def __call__(self, items: Sequence[tuple[int, Structure]]) -> Batch:
         """A :class:`Batch` of the ``(index, structure)`` items, each augmented first if enabled."""
-        structures, indices, parts = [], [], []
+        structures, indices = [], []
         n_aug = n_sing = 0
         aug = self.augmentation
         for idx, s in items:
-            augmented = False
             if aug is not None and aug.enabled:
                 rng = np.random.default_rng([self.seed, self.epoch, idx])
                 s, info = augment(s, rng, aug)
                 n_aug += info.augmented
                 n_sing += info.singular
-                augmented = bool(info.augmented)
-            if augmented:
-                parts.append(None)
-            else:
-                if idx not in self._parts:
-                    self._parts[idx] = GraphParts.of(s, self.cutoff, self.gcut)
-                parts.append(self._parts[idx])
             structures.append(s)
             indices.append(idx)
-        if isinstance(self.reference, HydrideReference):
-            if self._hydride_parts is None:
-                self._hydride_parts = [GraphParts.of(h, self.cutoff, self.gcut)
-                                       for h in self.reference.structures]
-            parts += self._hydride_parts
         return make_batch(structures, self.reference, self.cutoff, self.gcut, self.dtype,
-                          indices, n_aug, n_sing, parts=parts)
+                          indices, n_aug, n_sing)
 
 
 def make_batch(structures: Sequence[Structure], reference: HydrideReference | ConstantReference,
                cutoff: float, gcut: float, dtype: torch.dtype,
                indices: Sequence[int] | None = None,
-               n_augmented: int = 0, n_singular: int = 0,
-               parts: Sequence[GraphParts | None] | None = None) -> Batch:
-    """A :class:`Batch` of labelled ``structures`` (hydrides appended for a live reference);
-    ``parts``: the graph parts known for them, hydrides included (:func:`collate`)."""
+               n_augmented: int = 0, n_singular: int = 0) -> Batch:
+    """A :class:`Batch` of labelled ``structures`` (hydrides appended for a live reference)."""
     b = len(structures)
     extra = list(reference.structures) if isinstance(reference, HydrideReference) else []
-    g = collate(list(structures) + extra, cutoff, gcut, dtype, parts=parts)
+    g = collate(list(structures) + extra, cutoff, gcut, dtype)
     f = {"dtype": dtype}
     n_part = (g.n_cores + g.n_pairs).tolist()
     core_mask = torch.zeros(g.n_particles, dtype=torch.bool)

@@ -129,83 +129,47 @@ def reciprocal_triples(cell: np.ndarray, gcut: float) -> np.ndarray:
     return n[keep]
 
 
-@dataclass(frozen=True)
-class GraphParts:
-    """What :func:`collate` takes from one structure (numpy; particle indices local to it):
-    particle numbers, positions (Å) and charges (e), the half-list edges within the cutoff
-    with their image shifts, and the Coulomb pairs (molecule) or reciprocal vectors (crystal).
-    Depends on the structure, the cutoff and ``gcut`` only: a data loader may keep it for a
-    structure it sees again (:class:`emlpack.data.dataset.Collater`)."""
-
-    numbers: np.ndarray
-    positions: np.ndarray
-    charges: np.ndarray
-    edge_i: np.ndarray
-    edge_j: np.ndarray
-    edge_shift: np.ndarray
-    coulomb_i: np.ndarray
-    coulomb_j: np.ndarray
-    kvec_n: np.ndarray
-
-    @classmethod
-    def of(cls, s: Structure, cutoff: float, gcut: float) -> GraphParts:
-        """The parts of ``s`` for a model with short-range ``cutoff`` (Å) and Ewald
-        reciprocal cutoff ``gcut`` (1/Å); a neighbour-list failure or a charged cell raises
-        with ``s.source`` in the message."""
-        n = s.n_cores + s.n_pairs
-        pos = s.all_positions
-        try:
-            i, j, shifts = half_neighbor_list(pos, s.cell, s.pbc, cutoff)
-        except NeighborListError as exc:
-            raise NeighborListError(f"{s.source}: {exc}") from None
-        none = np.zeros(0, dtype=np.int64)
-        if s.pbc:
-            if abs(s.charges.sum()) > 1e-8:
-                raise ValueError(
-                    f"{s.source}: charged periodic cells (total charge {s.charges.sum():g}) are"
-                    " not supported by the reciprocal-space Ewald sum"
-                )
-            ci, cj, n_k = none, none, reciprocal_triples(s.cell, gcut)
-        else:
-            (ci, cj), n_k = all_pairs(n), np.zeros((0, 3), dtype=np.int64)
-        return cls(numbers=np.asarray(s.all_numbers), positions=pos,
-                   charges=np.asarray(s.charges, dtype=float), edge_i=i, edge_j=j,
-                   edge_shift=shifts, coulomb_i=ci, coulomb_j=cj, kvec_n=n_k)
-
-
 def collate(
     structures: Sequence[Structure],
     cutoff: float,
     gcut: float,
     dtype: torch.dtype = torch.float64,
     device: torch.device | str | None = None,
-    parts: Sequence[GraphParts | None] | None = None,
 ) -> Graph:
     """Build the batched :class:`Graph` of ``structures`` for a model with SchNet ``cutoff`` (Å)
-    and Ewald reciprocal cutoff ``gcut`` (1/Å); ``parts``: the structures'
-    :class:`GraphParts` where already known (None: computed here)."""
+    and Ewald reciprocal cutoff ``gcut`` (1/Å)."""
     if len(structures) == 0:
         raise ValueError("collate: no structures given")
-    parts = list(parts) if parts is not None else [None] * len(structures)
     numbers, positions, charges, batch = [], [], [], []
     ei, ej, es, ci, cj, kn, kb = [], [], [], [], [], [], []
     offset = 0
-    for b, (s, part) in enumerate(zip(structures, parts, strict=True)):
-        part = part if part is not None else GraphParts.of(s, cutoff, gcut)
+    for b, s in enumerate(structures):
         n = s.n_cores + s.n_pairs
-        numbers.append(part.numbers)
-        positions.append(part.positions)
-        charges.append(part.charges)
+        pos = s.all_positions
+        numbers.append(s.all_numbers)
+        positions.append(pos)
+        charges.append(s.charges)
         batch.append(np.full(n, b))
-        ei.append(part.edge_i + offset)
-        ej.append(part.edge_j + offset)
-        es.append(part.edge_shift)
+        try:
+            i, j, shifts = half_neighbor_list(pos, s.cell, s.pbc, cutoff)
+        except NeighborListError as exc:
+            raise NeighborListError(f"{s.source}: {exc}") from None
+        ei.append(i + offset)
+        ej.append(j + offset)
+        es.append(shifts)
         if s.pbc:
-            kn.append(part.kvec_n)
-            kb.append(np.full(len(part.kvec_n), b))
+            if abs(s.charges.sum()) > 1e-8:
+                raise ValueError(
+                    f"{s.source}: charged periodic cells (total charge {s.charges.sum():g}) are"
+                    " not supported by the reciprocal-space Ewald sum"
+                )
+            n_k = reciprocal_triples(s.cell, gcut)
+            kn.append(n_k)
+            kb.append(np.full(len(n_k), b))
         else:
-            ci.append(part.coulomb_i + offset)
-            cj.append(part.coulomb_j + offset)
+            i, j = all_pairs(n)
+            ci.append(i + offset)
+            cj.append(j + offset)
         offset += n
 
     def cat(
@@ -237,4 +201,4 @@ def collate(
     )
 
 
-__all__ = ["Graph", "GraphParts", "collate", "reciprocal_triples"]
+__all__ = ["Graph", "collate", "reciprocal_triples"]
