@@ -338,9 +338,11 @@ class EMLP(nn.Module):
         The electrostatic and field parts hold no parameters: their energies, forces and
         virial are computed without a graph. The short range's forces and virial come from
         ``dE/dd`` of the half-list edge vectors ``d`` (``F_i += dE/dd_e``, ``F_j -= dE/dd_e``,
-        virial ``sum_e d_e (x) dE/dd_e``): from the family's written-out length gradient
-        (capability :class:`~emlpack.nn.short_range.protocol.LengthGradient`,
-        ``dE/dd = dE/dr d / r``) or by autograd in ``d`` with ``create_graph=True``."""
+        virial ``sum_e d_e (x) dE/dd_e``): with ``compiled``, from the family's written-out
+        length gradient through ``torch.compile`` (capability
+        :class:`~emlpack.nn.short_range.protocol.LengthGradient`, ``dE/dd = dE/dr d / r``;
+        uncompiled it is slower than autograd), else by autograd in ``d`` with
+        ``create_graph=True``."""
         n, b = g.positions.shape[0], g.n_structures
         with torch.enable_grad():
             pos = g.positions.detach().requires_grad_(True)
@@ -354,7 +356,7 @@ class EMLP(nn.Module):
             grads = torch.autograd.grad((e_lr + e_field).sum(), inputs)
         d = self.edge_vectors(g, g.positions.detach(), g.cell.detach())
         sr = self.short_range
-        if isinstance(sr, LengthGradient):
+        if compiled and isinstance(sr, LengthGradient):
             r = edge_lengths(d)
             atomic, dedr = sr.energies_and_length_gradient(g.numbers, r, g.edge_i, g.edge_j,
                                                            compiled=compiled)

@@ -75,7 +75,7 @@ DEFAULTS: dict = {
         # parameter-name prefixes kept fixed (e.g. [short_range.embedding] in a fine-tune)
         "freeze": [],
         # the training step through torch.compile (families with a written-out length
-        # gradient, SchNet): ~1.6x fewer CPU seconds a step after a one-off compilation of
+        # gradient, SchNet): 1.6x fewer CPU seconds a step after a one-off compilation of
         # about a minute (docs/performance.md); needs a C++ compiler, falls back with a warning
         "compile": False,
     },
