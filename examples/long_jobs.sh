@@ -17,6 +17,9 @@
 #                 bg-optimize's core once that has converged
 #   raman-dft     the DFT Raman reference of aziridine (examples/raman/aziridine_dft.py, ~216
 #                 SCFs, ~15-40 min), after val-refs on the same core; committed when it ends
+#   alpha-labels  paper-level polarizability labels of 300 mini-eQM7 training configurations
+#                 (examples/eqm7/polarizability_labels.py, ~17 CPU h; issue 51's stiffness
+#                 lever; one file a configuration, committed every 25 min), after raman-dft
 #   pretrain      the QM7-wide cheap-level campaign (emlp campaign run on the folder named in
 #                 examples/qm7_cheap/DATASET once the level is chosen; shards committed every
 #                 25 min) on the cores the others leave: one labeling process, two when no
@@ -116,9 +119,26 @@ start_raman_dft() {
   echo "raman-dft: PID $!, log runs/raman-dft.log"
 }
 
+ALPHA_DIR=datasets/mini-eqm7/polarizability
+
+alpha_labels_done() {
+  [ "$(ls "$ALPHA_DIR"/*.json 2>/dev/null | wc -l)" -ge 300 ]
+}
+
+start_alpha_labels() {
+  running alpha-labels && return 0
+  alpha_labels_done && return 0
+  code_copy alpha
+  PYTHONPATH=/tmp/emlp-alpha/src OMP_NUM_THREADS=1 nohup "$PY" \
+    /tmp/emlp-alpha/examples/eqm7/polarizability_labels.py --count 300 --commit \
+    >> runs/alpha-labels.log 2>&1 &
+  echo $! > "$PIDS/alpha-labels.pid"
+  echo "alpha-labels: PID $!, log runs/alpha-labels.log"
+}
+
 others() {  # how many of the other jobs run (each takes one core)
   local n=0 job
-  for job in level-choice bg-optimize val-refs raman-dft; do running "$job" && n=$((n + 1)); done
+  for job in level-choice bg-optimize val-refs raman-dft alpha-labels; do running "$job" && n=$((n + 1)); done
   echo "$n"
 }
 
@@ -142,6 +162,7 @@ start_all() {
   if ! running bg-optimize; then
     start_val_refs
     running val-refs || start_raman_dft
+    running val-refs || running raman-dft || start_alpha_labels
   fi
   local free=$((2 - $(others)))
   [ "$free" -ge 1 ] && start_pretrain "$free"
@@ -151,7 +172,7 @@ start_all() {
 watch_jobs() {  # every 5 minutes: start what is due (one more labeling process when a core frees)
   while sleep 300; do
     if running pretrain && [ "$(cat "$PIDS/pretrain.workers" 2>/dev/null)" = 1 ] \
-        && [ "$(others)" = 0 ] && val_refs_done && [ -f "$RAMAN_JSON" ]; then
+        && [ "$(others)" = 0 ] && val_refs_done && [ -f "$RAMAN_JSON" ] && alpha_labels_done; then
       stop_job pretrain
       while running pretrain; do sleep 10; done
     fi
@@ -161,7 +182,7 @@ watch_jobs() {  # every 5 minutes: start what is due (one more labeling process 
 
 status() {
   local job
-  for job in level-choice bg-optimize val-refs raman-dft pretrain watcher; do
+  for job in level-choice bg-optimize val-refs raman-dft alpha-labels pretrain watcher; do
     if running "$job"; then echo "$job: running (PID $(cat "$PIDS/$job.pid"))"; else echo "$job: not running"; fi
   done
   echo "--- level choice"
@@ -171,6 +192,7 @@ status() {
   grep "optimize step" runs/bg-optimize.log 2>/dev/null | tail -2 || true
   ls datasets/beta-glycine/shards/*.h5 2>/dev/null | wc -l | sed 's/^/shards: /'
   echo "--- validation references: $(ls datasets/mini-eqm7/references/pbe0_aug-cc-pvtz/validation/*.json 2>/dev/null | wc -l) of 15"
+  echo "--- polarizability labels: $(ls "$ALPHA_DIR"/*.json 2>/dev/null | wc -l) of 300"
   if [ -f "$PRETRAIN_FILE" ]; then
     echo "--- pretraining campaign $(cat "$PRETRAIN_FILE")"
     PYTHONPATH=src "$PY" -c "
@@ -194,7 +216,7 @@ case "${1:-start}" in
   watch) watch_jobs ;;
   stop)
     stop_job watcher
-    for job in level-choice bg-optimize val-refs raman-dft pretrain; do stop_job "$job"; done
+    for job in level-choice bg-optimize val-refs raman-dft alpha-labels pretrain; do stop_job "$job"; done
     ;;
   status) status ;;
   *) echo "usage: $0 [start|status|stop]" >&2; exit 2 ;;
