@@ -80,6 +80,8 @@ start_level_choice() {
 start_bg_optimize() {
   running bg-optimize && return 0
   bg_optimize_done && return 0
+  # on hold while examples/beta_glycine/HOLD exists (it says why)
+  [ -f examples/beta_glycine/HOLD ] && return 0
   command -v cp2k.psmp >/dev/null || { echo "bg-optimize: no CP2K (make install-cp2k)"; return 0; }
   code_copy bgopt
   PYTHONPATH=/tmp/emlp-bgopt/src OMP_NUM_THREADS=1 nohup "$PY" \
@@ -188,7 +190,7 @@ status() {
   echo "--- level choice"
   ls examples/qm7_cheap/level_choice/*/*.json 2>/dev/null | wc -l | sed 's/^/measurement files: /'
   level_choice_done && echo "complete" || echo "not complete"
-  echo "--- beta-glycine DFT optimisation"
+  echo "--- beta-glycine DFT optimisation$([ -f examples/beta_glycine/HOLD ] && echo ' (on hold: examples/beta_glycine/HOLD)')"
   grep "optimize step" runs/bg-optimize.log 2>/dev/null | tail -2 || true
   ls datasets/beta-glycine/shards/*.h5 2>/dev/null | wc -l | sed 's/^/shards: /'
   echo "--- validation references: $(ls datasets/mini-eqm7/references/pbe0_aug-cc-pvtz/validation/*.json 2>/dev/null | wc -l) of 15"
