@@ -2,7 +2,7 @@
 
 Training fits forces, so its loss depends on ``dE/dr``: through autograd that is a reverse
 pass taken with ``create_graph=True`` and then differentiated again (a double backward with
-about 4,300 small operators per mini-eQM7 step). Here the reverse pass is written out by hand
+about 3,500 operators a mini-eQM7 step). Here the reverse pass is written out by hand
 as ordinary tensor operations (:func:`energies_and_length_gradient`), so that energies and
 ``dE/dr`` are one first-order expression of the parameters: the loss then needs one backward
 pass, and the whole expression can be compiled (``torch.compile``: elementwise chains fused
@@ -26,15 +26,15 @@ with ``dw/dr`` in forward mode through the filter network, from the basis' deriv
 ``drbf/dr`` and ``f_c'`` (:func:`radial_taylor`): value and derivative share each matrix
 product (stacked rows), and the first layers of all interactions are one product.
 
-The basis, the cutoff and their derivatives depend on the geometry only: computed once per
-batch, without gradients. Float64 results equal autograd's to rounding (1e-15 relative,
-``tests/nn/test_schnet_gradient.py``).
+The basis, the cutoff and their derivatives depend on the geometry only (no gradient flows
+through them). Float64 results equal autograd's to rounding (``tests/nn/test_training_forward.py``:
+energies and dE/dr 1e-12, the loss gradients 1e-11 eager and 1e-10 compiled).
 """
 
 from __future__ import annotations
 
+import logging
 import math
-import warnings
 from collections.abc import Callable
 
 import torch
@@ -43,7 +43,9 @@ from torch import nn
 from emlpack.nn.scatter import convolve
 from emlpack.nn.short_range.common import LN2
 
-__all__ = ["energies_and_length_gradient", "radial_taylor", "schnet_weights"]
+log = logging.getLogger(__name__)
+
+__all__ = ["compile_failure", "energies_and_length_gradient", "radial_taylor", "schnet_weights"]
 
 #: weights per interaction in :func:`schnet_weights` (filter1, filter2, atom_in, conv_out,
 #: atom_out: weight and bias each)
@@ -158,6 +160,12 @@ def _energies_and_gradient(
 _COMPILED: dict[str, Callable] = {}
 
 
+def compile_failure() -> str | None:
+    """Why ``torch.compile`` of the training step failed in this process (None: it did not,
+    or was not tried)."""
+    return _COMPILED.get("failed")
+
+
 def _compiled() -> Callable:
     """:func:`_energies_and_gradient` compiled once per process (dynamic shapes: one
     compilation serves every batch size)."""
@@ -178,7 +186,7 @@ def energies_and_length_gradient(
     lengths ``r`` (E,) (Å) of the edges ``(i, j)``, both differentiable (once) in the
     parameters and not in ``r``; ``compiled``: through ``torch.compile`` (the first call
     compiles, about a minute; a compiler error falls back to the plain evaluation with a
-    warning)."""
+    logged warning)."""
     radial = (schnet.rbf.width, schnet.cutoff - schnet.cutoff_transition,
               schnet.cutoff_transition)
     args = (schnet_weights(schnet), numbers, r.detach(), schnet.rbf.centers.to(r.dtype), i, j,
@@ -188,6 +196,6 @@ def energies_and_length_gradient(
             return _compiled()(*args)
         except Exception as err:  # noqa: BLE001 (inductor raises many kinds; fall back)
             _COMPILED["failed"] = repr(err)
-            warnings.warn(f"torch.compile of the SchNet training step failed ({err!r:.200});"
-                          " training goes on uncompiled", RuntimeWarning, stacklevel=2)
+            log.warning("torch.compile of the SchNet training step failed (%.200r); training"
+                        " goes on uncompiled", err)
     return _energies_and_gradient(*args)
