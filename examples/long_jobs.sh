@@ -6,6 +6,8 @@
 #                                        watcher that moves on as jobs end
 #   bash examples/long_jobs.sh status    what runs, counts, rates
 #   bash examples/long_jobs.sh stop      stop them; each saves and commits its finished work
+#   bash examples/long_jobs.sh nice [N]  renice the running jobs and their children to N
+#                                        (default 19: a measurement takes the cores; 0 after)
 #
 # The jobs, in the brief's order (two cores):
 #   level-choice  the cheap level's measurements (examples/qm7_cheap/level_choice.py; one
@@ -182,6 +184,22 @@ watch_jobs() {  # every 5 minutes: start what is due (one more labeling process 
   done
 }
 
+tree() {  # tree PID: the process and all its descendants
+  local child
+  echo "$1"
+  for child in $(pgrep -P "$1" 2>/dev/null); do tree "$child"; done
+}
+
+renice_jobs() {  # renice_jobs N: the running jobs (not the watcher) and their children
+  local job pids=""
+  for job in level-choice bg-optimize val-refs raman-dft alpha-labels pretrain; do
+    running "$job" && pids="$pids $(tree "$(cat "$PIDS/$job.pid")" | tr "\n" " ")"
+  done
+  # shellcheck disable=SC2086
+  [ -n "$pids" ] && renice -n "$1" -p $pids >/dev/null && echo "reniced to $1:$pids"
+  return 0
+}
+
 status() {
   local job
   for job in level-choice bg-optimize val-refs raman-dft alpha-labels pretrain watcher; do
@@ -221,5 +239,6 @@ case "${1:-start}" in
     for job in level-choice bg-optimize val-refs raman-dft alpha-labels pretrain; do stop_job "$job"; done
     ;;
   status) status ;;
-  *) echo "usage: $0 [start|status|stop]" >&2; exit 2 ;;
+  nice) renice_jobs "${2:-19}" ;;
+  *) echo "usage: $0 [start|status|stop|nice [N]]" >&2; exit 2 ;;
 esac
