@@ -4,6 +4,7 @@ with 2 processes giving the loss curve of 1 process with the same global batch, 
 from __future__ import annotations
 
 import csv
+import logging
 import os
 import signal
 import subprocess
@@ -488,3 +489,22 @@ def test_the_step_differentiates_every_parameter_and_nothing_else(tmp_path, smal
     only = gradients(trainer.trained_parameters)
     assert all(torch.equal(a, b) for a, b in zip(plain, only, strict=True))
     assert any(float(g.abs().max()) > 0 for g in only)
+
+
+def test_the_cpu_budget_counts_over_resumes(tmp_path, small_data, caplog):
+    """``training.max_cpu_minutes``: an epoch starts only while the CPU seconds of the run, kept
+    in last.pt over resumes, are within the budget."""
+    cfg = _config(tmp_path, small_data, "cpu", training={"max_epochs": 1})
+    train(load_config(cfg))
+    spent = read_checkpoint(tmp_path / "cpu" / "last.pt")["metadata"]["training"]["cpu_seconds"]
+    assert spent > 0.0
+    more = ["training.max_epochs=100000"]
+    train(load_config(cfg, [*more, f"training.max_cpu_minutes={spent / 120.0}"]))
+    assert len(_log(tmp_path / "cpu")) == 1  # the saved total already passes half of it
+    budget = 3.0 * spent / 60.0
+    with caplog.at_level(logging.INFO, logger="emlpack.train.trainer"):
+        train(load_config(cfg, [*more, f"training.max_cpu_minutes={budget}"]))
+    assert "stopped: CPU time limit" in caplog.text
+    assert 1 < len(_log(tmp_path / "cpu")) < 100000
+    total = read_checkpoint(tmp_path / "cpu" / "last.pt")["metadata"]["training"]["cpu_seconds"]
+    assert total > spent

@@ -60,7 +60,10 @@ DEFAULTS: dict = {
         "decay_factor": 0.5,
         "decay_epochs": 30.0,
         "max_epochs": 1000,
-        "max_time_minutes": None,
+        "max_time_minutes": None,  # wall minutes per call (a resume gets them again)
+        # CPU minutes of the training process over all resumes (equal-CPU comparisons on a
+        # shared machine): the run stops after the epoch that passes them; None: no limit
+        "max_cpu_minutes": None,
         "patience": None,  # early stopping: epochs without improvement (None: off)
         "threads": None,
         # where the model trains: auto (the first CUDA GPU when PyTorch sees one, else the CPU),
@@ -244,8 +247,8 @@ def validate(cfg: dict) -> None:
             raise ConfigError(f"training.{key} must be a positive integer, got {t[key]!r}")
     if not (_number(t["lr"]) and t["lr"] >= 0):
         raise ConfigError(f"training.lr must be a number >= 0, got {t['lr']!r}")
-    for key in ("adam_eps", "decay_epochs", "max_time_minutes"):
-        if key == "max_time_minutes" and t[key] is None:  # no time limit
+    for key in ("adam_eps", "decay_epochs", "max_time_minutes", "max_cpu_minutes"):
+        if key in ("max_time_minutes", "max_cpu_minutes") and t[key] is None:  # no limit
             continue
         if not (_number(t[key]) and t[key] > 0):
             raise ConfigError(f"training.{key} must be a positive number, got {t[key]!r}")

@@ -198,6 +198,8 @@ class Trainer:
         self.best = math.inf
         self.best_epoch = -1
         self.bad_epochs = 0
+        # CPU seconds of this process spent training, summed over resumes (max_cpu_minutes)
+        self._cpu_base, self._cpu_start = 0.0, time.process_time()
         self._val_batches = None
         self._training_domain: dict | None = None
 
@@ -289,7 +291,13 @@ class Trainer:
             "epoch": self.epoch, "step": self.step, "best": self.best,
             "best_epoch": self.best_epoch, "bad_epochs": self.bad_epochs,
             "torch_rng": torch.get_rng_state(), "world_size": self.world,
+            "cpu_seconds": self.cpu_seconds(),
         }
+
+    def cpu_seconds(self) -> float:
+        """CPU seconds (user + system, all threads) this run's training took, resumed parts
+        included (``training.max_cpu_minutes``)."""
+        return self._cpu_base + time.process_time() - self._cpu_start
 
     def resume(self, path: Path) -> None:
         """Continue from the checkpoint ``path`` (last.pt): weights, optimizer, scheduler, counters
@@ -315,6 +323,8 @@ class Trainer:
         self.epoch, self.step = int(state["epoch"]), int(state["step"])
         self.best, self.best_epoch = float(state["best"]), int(state["best_epoch"])
         self.bad_epochs = int(state["bad_epochs"])
+        self._cpu_base = float(state.get("cpu_seconds", 0.0))  # absent before 2026-12-02
+        self._cpu_start = time.process_time()
         torch.set_rng_state(state["torch_rng"])
 
     def _same_section(self, section: str, saved: dict | None) -> bool:
@@ -397,7 +407,7 @@ class Trainer:
         writer = self._tensorboard()
         t_start = self._snapshot_time = time.monotonic()
         self._saved_step = self._snapshot_step = self.step
-        limit = t["max_time_minutes"]
+        limit, cpu_limit = t["max_time_minutes"], t["max_cpu_minutes"]
         stop_reason = "max_epochs"
         with terminate_as_interrupt():  # ``kill PID`` stops as Ctrl-C does, with a snapshot
             try:
@@ -406,6 +416,10 @@ class Trainer:
                         # checked first: a run resumed after it stopped early trains no more
                         stop_reason = (f"early stopping ({self.bad_epochs} epochs without"
                                        " improvement)")
+                        break
+                    if cpu_limit is not None and self.cpu_seconds() > 60.0 * float(cpu_limit):
+                        # checked first too: an epoch starts only while the budget lasts
+                        stop_reason = f"CPU time limit ({cpu_limit} CPU min over all resumes)"
                         break
                     self._epoch(writer)
                     if self.dist:
