@@ -38,8 +38,10 @@ from scipy.optimize import linear_sum_assignment
 
 from emlpack.geometry import minimum_image
 from emlpack.io import read_structures
+from emlpack.qm.cp2k import CP2KLabeler
 from emlpack.qm.cp2k.input import CP2KSettings, build_input
-from emlpack.qm.cp2k.output import map_centres_to_cores, read_wannier_xyz
+from emlpack.qm.cp2k.output import STRESS_SIGN, map_centres_to_cores
+from emlpack.units import EV_PER_A3_IN_GPA, HARTREE
 
 HERE = Path(__file__).resolve().parent
 SHARED = HERE.parents[1].parent / "shared"
@@ -117,17 +119,6 @@ def stress_gpa(out: str) -> list | None:
     return np.round(np.array(rows, dtype=float), 3).tolist() if len(rows) == 3 else None
 
 
-def supercell(s, reps: tuple[int, int, int]):
-    """``s`` repeated ``reps`` times (cores and pairs; the first cell's particles first)."""
-    shifts = np.array([(i, j, k) for i in range(reps[0]) for j in range(reps[1])
-                       for k in range(reps[2])], dtype=float) @ s.cell
-    return s.copy(numbers=np.tile(s.numbers, len(shifts)),
-                  positions=(s.positions[None] + shifts[:, None]).reshape(-1, 3),
-                  pairs=(s.pairs[None] + shifts[:, None]).reshape(-1, 3),
-                  cell=np.array(reps, dtype=float)[:, None] * s.cell, forces=None,
-                  pair_forces=None, energy=None, stress=None)
-
-
 def wannier90_centres(wout: str) -> tuple[np.ndarray, float]:
     """The final Wannier centres (Å) and total spread (Å²) from ``wannier90.x``'s ``.wout``."""
     final = wout[wout.rfind("Final State"):]
@@ -151,25 +142,38 @@ def main() -> None:
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
     summary["structure"] = "shared/data/beta_glycine_pbe_wannier.xyz (the paper's PBE cell)"
     summary["reference_centres"] = "the paper's (Quantum ESPRESSO PBE, 3x3x3, Wannier90)"
-    gamma_settings = CP2KSettings(wannier=True, n_processes=1, mpirun=None, eps_scf=1e-6)
     for name in args.only:
         d = RUNS / name
         d.mkdir(parents=True, exist_ok=True)
-        if name in ("gamma", "gamma_212"):
-            cell = supercell(s, (2, 1, 2)) if name == "gamma_212" else s
-            text = build_input(cell, gamma_settings, stress=name == "gamma_212")
-        else:
-            mesh = tuple(int(c) for c in name[1:4])
-            text = build_input(s, CP2KSettings(wannier=False, n_processes=1, mpirun=None,
-                                               eps_scf=1e-6), stress=name.endswith("_stress"))
-            assert OT in text
-            text = text.replace(OT, DIAGONALISATION).replace("    &QS\n",
-                                                              KPOINTS.format(*mesh))
-            text = text.replace("      MAX_SCF 20\n", "      MAX_SCF 200\n", 1)
-            if name == "k323":
-                text = text.replace("  &END DFT", WANNIER90.format(*MESH, n_pairs), 1)
-            elif name == "k323_field":  # a field with k-points: setup only (one SCF step)
-                text = text.replace("  &END DFT", """    &PERIODIC_EFIELD
+        if name in ("gamma", "gamma_212"):  # the campaign's labeler, its Γ-point supercell
+            reps = (2, 1, 2) if name == "gamma_212" else (1, 1, 1)
+            clock = cpu_seconds()
+            labeled = CP2KLabeler(CP2KSettings(n_processes=1, mpirun=None, eps_scf=1e-6,
+                                               supercell=reps), workdir=d)(s, stress=True)
+            row = {"cp2k_cpu_s": round(cpu_seconds() - clock, 1), "level": labeled.info["level"],
+                   "energy_eV_per_cell": labeled.energy,
+                   "stress_gpa": np.round(STRESS_SIGN * labeled.stress * EV_PER_A3_IN_GPA,
+                                          3).tolist(),
+                   "vs_paper": compare(labeled.pairs, s.pairs, s.cell)}
+            np.save(d / "centres.npy", labeled.pairs)
+            g = RUNS / "gamma" / "centres.npy"
+            if name == "gamma_212" and g.exists():
+                row["vs_gamma"] = compare(labeled.pairs, np.load(g), s.cell)
+            summary[name] = row
+            print(name, json.dumps(row), flush=True)
+            summary_path.write_text(json.dumps(summary, indent=1) + "\n")
+            continue
+        mesh = tuple(int(c) for c in name[1:4])
+        text = build_input(s, CP2KSettings(wannier=False, n_processes=1, mpirun=None,
+                                           eps_scf=1e-6), stress=name.endswith("_stress"))
+        assert OT in text
+        text = text.replace(OT, DIAGONALISATION).replace("    &QS\n",
+                                                          KPOINTS.format(*mesh))
+        text = text.replace("      MAX_SCF 20\n", "      MAX_SCF 200\n", 1)
+        if name == "k323":
+            text = text.replace("  &END DFT", WANNIER90.format(*MESH, n_pairs), 1)
+        elif name == "k323_field":  # a field with k-points: setup only (one SCF step)
+            text = text.replace("  &END DFT", """    &PERIODIC_EFIELD
       INTENSITY 1.0e-3
       POLARISATION 1.0 0.0 0.0
     &END PERIODIC_EFIELD
@@ -179,23 +183,12 @@ def main() -> None:
         out = (d / "out.log").read_text() if (d / "out.log").exists() else ""
         row: dict = {"cp2k_cpu_s": round(seconds, 1)}
         e = re.findall(r"ENERGY\| Total FORCE_EVAL \( QS \) energy \[a\.u\.\]:\s+(\S+)", out)
-        row["energy_Ha"] = float(e[-1]) if e else None
+        row["energy_eV_per_cell"] = float(e[-1]) * HARTREE if e else None
         abort = re.search(r"\[ABORT\].*?\n(.*?)\n", out, re.S) or re.search(
             r"ABORT(.*?)\n", out)
         if abort:
             row["abort"] = " ".join(abort.group(0).split())[:300]
         row["stress_gpa"] = stress_gpa(out)
-        if name in ("gamma", "gamma_212") and (d / "emlp_wannier.xyz").exists():
-            c = read_wannier_xyz(d / "emlp_wannier.xyz", len(cell.numbers))
-            # the first cell's centres: those nearest a core of the first cell
-            c, core = map_centres_to_cores(c, cell.positions, cell.cell)
-            c = c[core < len(s.numbers)]
-            if name == "gamma_212":
-                row["energy_Ha_per_cell"] = row["energy_Ha"] and row["energy_Ha"] / 4
-            row["vs_paper"] = compare(c, s.pairs, s.cell)
-            np.save(d / "centres.npy", c)
-            if name == "gamma_212" and (RUNS / "gamma" / "centres.npy").exists():
-                row["vs_gamma"] = compare(c, np.load(RUNS / "gamma" / "centres.npy"), s.cell)
         if name == "k323" and (d / "bg.win").exists():
             with (d / "bg.win").open("a") as f:
                 f.write(W90_EXTRA)

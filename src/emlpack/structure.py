@@ -153,6 +153,26 @@ class Structure:
         new.update(changes)
         return replace(self, **{k: new[k] for k in new})
 
+    def repeated(self, reps: tuple[int, int, int]) -> Structure:
+        """The periodic structure repeated ``reps`` times along its cell vectors (cores and
+        pairs; the first cell's particles first, then image by image with the third index
+        fastest); labels, which are per cell, are dropped. The field and info are kept."""
+        if not self.pbc:
+            raise StructureError(f"{self.source}: only a periodic structure can be repeated")
+        reps = tuple(int(n) for n in reps)
+        if len(reps) != 3 or min(reps) < 1:
+            raise StructureError(f"{self.source}: repetitions must be 3 positive integers,"
+                                 f" got {reps}")
+        shifts = np.array([(a, b, c) for a in range(reps[0]) for b in range(reps[1])
+                           for c in range(reps[2])], dtype=float) @ self.cell
+        return Structure(
+            numbers=np.tile(self.numbers, len(shifts)),
+            positions=(self.positions[None] + shifts[:, None]).reshape(-1, 3),
+            pairs=(self.pairs[None] + shifts[:, None]).reshape(-1, 3),
+            cell=np.array(reps, dtype=float)[:, None] * self.cell, pbc=True,
+            field=self.field.copy(), charge=self.charge * len(shifts), info=dict(self.info),
+            source=f"{self.source} x {reps[0]}x{reps[1]}x{reps[2]}")
+
     # ------------------------------------------------------------------ validation
     def validate(self) -> None:
         """Raise :class:`StructureError` when the structure is inconsistent."""

@@ -28,7 +28,7 @@ from emlpack.qm.cp2k import (
     map_centres_to_cores,
     parse_output,
 )
-from emlpack.structure import Structure
+from emlpack.structure import Structure, StructureError
 from emlpack.units import FIELD_AU_IN_V_PER_A
 
 #: triclinic cell (rows, Å), edges 5.6-6.0 Å; field forces agree with finite differences here
@@ -280,3 +280,42 @@ def test_wavefunction_reuse_with_relative_workdir(cp2k, tmp_path, monkeypatch):
     second = lab(water(positions=water().positions + 0.01))
     assert "User requested to restart" not in (lab.last_run_dir / "emlp.out").read_text()
     assert second.info["scf_steps"] < first.info["scf_steps"] / 2, (first.info, second.info)
+
+
+def test_supercell_labels_are_the_cells(cp2k):
+    """``CP2KSettings.supercell``: the cell labeled through its 2x1x1 Γ-point supercell gets
+    the supercell's labels per cell (energy / 2, the first cell's forces and Wannier centres,
+    the stress): the same as labeling the repeated structure itself and taking its first cell."""
+    s = water()
+    big = s.repeated((2, 1, 1))
+    direct = CP2KLabeler(SETTINGS)(big, stress=True)
+    via = CP2KLabeler(CP2KSettings(**{**SETTINGS.to_dict(), "supercell": (2, 1, 1)}))(
+        s, stress=True)
+    assert via.info["level"].endswith("/gamma-supercell-2x1x1") and via.info["supercell"] == [
+        2, 1, 1]
+    assert via.energy == pytest.approx(direct.energy / 2, abs=1e-6)
+    np.testing.assert_allclose(via.forces, direct.forces[:3], atol=1e-5)
+    np.testing.assert_allclose(via.forces, direct.forces[3:], atol=1e-4)  # the image's
+    np.testing.assert_allclose(via.stress, direct.stress, atol=1e-7)
+    assert via.n_pairs == 4 and via.pair_forces.shape == (4, 3)
+    # the first cell's centres, each beside a core of the cell
+    d = np.linalg.norm(via.pairs[:, None] - direct.pairs[None], axis=-1).min(axis=1)
+    assert np.all(d < 1e-4)
+    assert np.linalg.norm(via.pairs[:, None] - s.positions[None], axis=-1).min(axis=1).max() < 0.8
+
+
+def test_repeated_structure():
+    s = water(pairs=np.array([[0.1, 0.3, 0.0], [0.4, 0.5, 0.0], [0.0, 0.5, 0.2],
+                              [0.2, 0.1, 0.3]]))
+    big = s.repeated((2, 1, 3))
+    assert big.n_cores == 18 and big.n_pairs == 24
+    np.testing.assert_allclose(big.cell, np.diag([2.0, 1.0, 3.0]) @ CELL)
+    np.testing.assert_allclose(big.positions[:3], s.positions)
+    np.testing.assert_allclose(big.positions[3:6], s.positions + CELL[2])  # third index fastest
+    np.testing.assert_allclose(big.pairs[-4:], s.pairs + CELL[0] + 2 * CELL[2])
+    assert big.volume == pytest.approx(6 * s.volume)
+    np.testing.assert_allclose(big.dipole(), 6 * s.dipole(), atol=1e-12)  # neutral: extensive
+    with pytest.raises(StructureError, match="repetitions"):
+        s.repeated((0, 1, 1))
+    with pytest.raises(StructureError, match="periodic"):
+        s.copy(pbc=False, cell=np.zeros((3, 3))).repeated((2, 1, 1))

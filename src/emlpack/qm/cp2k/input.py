@@ -54,6 +54,11 @@ class CP2KSettings:
             composition (same labeler; in :func:`label_task` the same worker process) instead of
             the atomic guess: fewer SCF steps for similar configurations, same result within
             the SCF tolerance.
+        supercell: run CP2K on the structure repeated this many times along its cell vectors
+            (Γ point of the supercell = a Γ-centred k-point mesh of the cell, for every label:
+            the Berry-phase field and the Wannier localisation need the Γ point only); the
+            labels are mapped back to the cell (energy / number of cells, the first cell's
+            forces and Wannier centres, the stress as is).
         n_processes: MPI processes; omp_threads: OMP_NUM_THREADS per process.
         timeout_s: wall-time limit of one CP2K run (s), None = unlimited.
         cp2k: CP2K executable; mpirun: MPI launcher (None: run CP2K directly).
@@ -75,6 +80,7 @@ class CP2KSettings:
     max_localization_iter: int = 10000
     wannier: bool = True
     reuse_wavefunction: bool = False
+    supercell: tuple[int, int, int] = (1, 1, 1)
     n_processes: int = 2
     omp_threads: int = 1
     timeout_s: float | None = None
@@ -86,7 +92,9 @@ class CP2KSettings:
         """Level-of-theory label, e.g. ``"cp2k/pbe-d3bj/dzvp-molopt-sr-gth/400ry"``."""
         disp = re.sub(r"[^a-z0-9]", "", (self.dispersion or "").lower())
         disp = f"-{disp}" if disp else ""
-        return f"cp2k/{self.xc.lower()}{disp}/{self.basis.lower()}/{self.cutoff_ry:g}ry"
+        cells = tuple(int(n) for n in self.supercell)
+        sc = "" if cells == (1, 1, 1) else "/gamma-supercell-{}x{}x{}".format(*cells)
+        return f"cp2k/{self.xc.lower()}{disp}/{self.basis.lower()}/{self.cutoff_ry:g}ry{sc}"
 
     def to_dict(self) -> dict:
         """The settings as a plain dict."""

@@ -1,8 +1,9 @@
 """Periodic reference labels with CP2K: energy, forces, stress, Wannier centres, Berry-phase field.
 
-One :class:`CP2KLabeler` call writes a CP2K input for a periodic :class:`Structure` (Γ point,
-GPW, GTH pseudopotentials), runs ``mpirun -np N cp2k.psmp`` in a scratch directory and returns
-a new, labeled :class:`Structure` in emlpack's units:
+One :class:`CP2KLabeler` call writes a CP2K input for a periodic :class:`Structure` (Γ point
+of the cell or of a supercell, ``CP2KSettings.supercell``; GPW, GTH pseudopotentials), runs
+``mpirun -np N cp2k.psmp`` in a scratch directory and returns a new, labeled
+:class:`Structure` in emlpack's units:
 
 * energy (eV), including the field term: ``E(F) = E_KS - μ·F`` to first order, with μ the dipole
   of cores and Wannier pairs, i.e. the eMLP's ``E_ext = -Σ q F·r``;
@@ -60,6 +61,24 @@ if TYPE_CHECKING:
     from emlpack.qm.labeling import LabelingSummary
 
 
+def first_cell_centres(centres: np.ndarray, cell: Structure, run_on: Structure,
+                       where: str) -> np.ndarray:
+    """The Wannier centres (Å) of ``cell`` from those of ``run_on`` (``cell`` itself or its
+    supercell, :meth:`Structure.repeated`, whose first ``cell.n_cores`` cores are the cell's):
+    each centre at the image nearest to its closest core, those of the first cell's cores
+    kept, then placed at the image nearest to their closest core of ``cell``."""
+    mapped, core = map_centres_to_cores(centres, run_on.positions, run_on.cell)
+    if run_on is not cell:
+        mapped = mapped[core < cell.n_cores]
+        n_cells = run_on.n_cores // cell.n_cores
+        if len(mapped) * n_cells != len(centres):
+            raise CP2KError(f"{where}: {len(mapped)} of the supercell's {len(centres)} Wannier"
+                            f" centres are nearest to the first cell's cores, not"
+                            f" 1/{n_cells} of them")
+        mapped, _ = map_centres_to_cores(mapped, cell.positions, cell.cell)
+    return mapped
+
+
 # ---------------------------------------------------------------------------------- labeler
 class CP2KLabeler:
     """Labels periodic structures with CP2K (see the module docstring for units and signs).
@@ -95,10 +114,14 @@ class CP2KLabeler:
         if missing is not None:
             raise CP2KInputError(f"{where}: CP2K cannot run: {missing}")
         data_dir = find_data_dir(s.data_dir)
-        composition = np.append(structure.numbers, structure.charge).tobytes()
+        reps = tuple(int(n) for n in s.supercell)
+        cells = int(np.prod(reps))
+        # the calculation's structure: the cell itself, or its Γ-point supercell
+        run_on = structure if cells == 1 else structure.repeated(reps)
+        composition = np.append(run_on.numbers, run_on.charge).tobytes()
         guess = self._wfn.get(composition) if s.reuse_wavefunction else None
-        text = build_input(structure, s, stress, data_dir=data_dir, guess=guess)
-        n_val = core_charges(structure.numbers).sum() - structure.charge
+        text = build_input(run_on, s, stress, data_dir=data_dir, guess=guess)
+        n_val = core_charges(run_on.numbers).sum() - run_on.charge
         if self.workdir is not None:
             self.workdir.mkdir(parents=True, exist_ok=True)
         run_dir = Path(tempfile.mkdtemp(prefix="cp2k-", dir=self.workdir))
@@ -108,7 +131,7 @@ class CP2KLabeler:
             (run_dir / "emlp.inp").write_text(text)
             output = self._run(run_dir, where)
             try:
-                res = parse_output(output, structure.n_cores, stress)
+                res = parse_output(output, run_on.n_cores, stress)
             except CP2KError as exc:
                 self._wfn.pop(composition, None)  # next time from the atomic guess
                 raise CP2KError(f"{where}: {exc}; CP2K output tail:\n"
@@ -121,13 +144,13 @@ class CP2KLabeler:
                 if not wfile.exists():
                     raise CP2KError(f"{where}: CP2K wrote no Wannier centres; output tail:\n"
                                     f"{output_tail(output)}")
-                centres = read_wannier_xyz(wfile, structure.n_cores)
+                centres = read_wannier_xyz(wfile, run_on.n_cores)
                 if 2 * len(centres) != n_val:
                     raise CP2KError(
                         f"{where}: {len(centres)} Wannier centres, but {n_val:g} valence"
                         f" electrons need {n_val / 2:g}"
                     )
-                pairs, _ = map_centres_to_cores(centres, structure.positions, structure.cell)
+                pairs = first_cell_centres(centres, structure, run_on, where)
         finally:
             if not self.keep_files:
                 shutil.rmtree(run_dir, ignore_errors=True)
@@ -141,11 +164,16 @@ class CP2KLabeler:
         stress_ev = None
         if stress:
             stress_ev = STRESS_SIGN * res["stress_gpa"] / EV_PER_A3_IN_GPA
+        if cells > 1:
+            info["supercell"] = list(reps)
+        # the supercell's images are copies of the cell: its energy per cell, the first cell's
+        # forces (the images' agree to the SCF tolerance)
         return Structure(
             numbers=structure.numbers.copy(), positions=structure.positions.copy(),
             pairs=pairs if s.wannier else structure.pairs.copy(), cell=structure.cell.copy(),
             pbc=True, field=structure.field.copy(), charge=structure.charge,
-            energy=res["energy"] * HARTREE, forces=res["forces"] * HARTREE * ANGSTROM_IN_BOHR,
+            energy=res["energy"] * HARTREE / cells,
+            forces=res["forces"][:structure.n_cores] * HARTREE * ANGSTROM_IN_BOHR,
             pair_forces=np.zeros((len(pairs) if s.wannier else structure.n_pairs, 3)),
             stress=stress_ev, info=info, source=structure.source,
         )
