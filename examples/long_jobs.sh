@@ -19,9 +19,14 @@
 #                 bg-optimize's core once that has converged
 #   raman-dft     the DFT Raman reference of aziridine (examples/raman/aziridine_dft.py, ~216
 #                 SCFs, ~15-40 min), after val-refs on the same core; committed when it ends
+#   bakeoff       issue 51's bake-off: each candidate recipe of examples/eqm7/bakeoff.yaml
+#                 trained for its CPU budget (2 CPU h) and judged on the validation molecules
+#                 (examples/eqm7/bakeoff.py run, then table; runs/bakeoff/NAME, resumable: a
+#                 training goes on from its last.pt with the budget it has left), after
+#                 raman-dft on the same core; bakeoff.md/json committed as each candidate ends
 #   alpha-labels  paper-level polarizability labels of 300 mini-eQM7 training configurations
 #                 (examples/eqm7/polarizability_labels.py, ~17 CPU h; issue 51's stiffness
-#                 lever; one file a configuration, committed every 25 min), after raman-dft
+#                 lever; one file a configuration, committed every 25 min), after bakeoff
 #   pretrain      the QM7-wide cheap-level campaign (emlp campaign run on the folder named in
 #                 examples/qm7_cheap/DATASET once the level is chosen; shards committed every
 #                 25 min) on the cores the others leave: one labeling process, two when no
@@ -50,8 +55,9 @@ code_copy() {  # code_copy JOB: a private copy of src/ and examples/ for the job
 
 stop_job() {
   if running "$1"; then
-    # raman-dft is a bash -c around the recipe: stop the recipe itself (its SCF files are kept)
-    [ "$1" = raman-dft ] && pkill -TERM -P "$(cat "$PIDS/$1.pid")" 2>/dev/null
+    # raman-dft and bakeoff are a bash -c around their script: stop the script itself (the
+    # recipe keeps its SCF files, a training its last finished epoch)
+    case "$1" in raman-dft|bakeoff) pkill -TERM -P "$(cat "$PIDS/$1.pid")" 2>/dev/null ;; esac
     kill "$(cat "$PIDS/$1.pid")" && echo "$1: stopping (it saves and commits its finished work)"
   fi
 }
@@ -123,6 +129,22 @@ start_raman_dft() {
   echo "raman-dft: PID $!, log runs/raman-dft.log"
 }
 
+bakeoff_done() {  # every candidate of bakeoff.yaml has every stage's outputs
+  PYTHONPATH=src "$PY" examples/eqm7/bakeoff.py done >/dev/null 2>&1
+}
+
+start_bakeoff() {
+  running bakeoff && return 0
+  bakeoff_done && return 0
+  code_copy bakeoff
+  # run commits bakeoff.md/json as each candidate ends; table writes and commits the last one
+  OMP_NUM_THREADS=1 nohup bash -c "PYTHONPATH=/tmp/emlp-bakeoff/src $PY \
+    /tmp/emlp-bakeoff/examples/eqm7/bakeoff.py run --commit && PYTHONPATH=/tmp/emlp-bakeoff/src \
+    $PY /tmp/emlp-bakeoff/examples/eqm7/bakeoff.py table --commit" >> runs/bakeoff.log 2>&1 &
+  echo $! > "$PIDS/bakeoff.pid"
+  echo "bakeoff: PID $!, log runs/bakeoff.log"
+}
+
 ALPHA_DIR=datasets/mini-eqm7/polarizability
 
 alpha_labels_done() {
@@ -142,7 +164,7 @@ start_alpha_labels() {
 
 others() {  # how many of the other jobs run (each takes one core)
   local n=0 job
-  for job in level-choice bg-optimize val-refs raman-dft alpha-labels; do running "$job" && n=$((n + 1)); done
+  for job in level-choice bg-optimize val-refs raman-dft bakeoff alpha-labels; do running "$job" && n=$((n + 1)); done
   echo "$n"
 }
 
@@ -166,7 +188,8 @@ start_all() {
   if ! running bg-optimize; then
     start_val_refs
     running val-refs || start_raman_dft
-    running val-refs || running raman-dft || start_alpha_labels
+    running val-refs || running raman-dft || running alpha-labels || start_bakeoff
+    running val-refs || running raman-dft || running bakeoff || start_alpha_labels
   fi
   local free=$((2 - $(others)))
   [ "$free" -ge 1 ] && start_pretrain "$free"
@@ -176,7 +199,8 @@ start_all() {
 watch_jobs() {  # every 5 minutes: start what is due (one more labeling process when a core frees)
   while sleep 300; do
     if running pretrain && [ "$(cat "$PIDS/pretrain.workers" 2>/dev/null)" = 1 ] \
-        && [ "$(others)" = 0 ] && val_refs_done && [ -f "$RAMAN_JSON" ] && alpha_labels_done; then
+        && [ "$(others)" = 0 ] && val_refs_done && [ -f "$RAMAN_JSON" ] && bakeoff_done \
+        && alpha_labels_done; then
       stop_job pretrain
       while running pretrain; do sleep 10; done
     fi
@@ -192,7 +216,7 @@ tree() {  # tree PID: the process and all its descendants
 
 renice_jobs() {  # renice_jobs N: the running jobs (not the watcher) and their children
   local job pids=""
-  for job in level-choice bg-optimize val-refs raman-dft alpha-labels pretrain; do
+  for job in level-choice bg-optimize val-refs raman-dft bakeoff alpha-labels pretrain; do
     running "$job" && pids="$pids $(tree "$(cat "$PIDS/$job.pid")" | tr "\n" " ")"
   done
   # shellcheck disable=SC2086
@@ -202,7 +226,7 @@ renice_jobs() {  # renice_jobs N: the running jobs (not the watcher) and their c
 
 status() {
   local job
-  for job in level-choice bg-optimize val-refs raman-dft alpha-labels pretrain watcher; do
+  for job in level-choice bg-optimize val-refs raman-dft bakeoff alpha-labels pretrain watcher; do
     if running "$job"; then echo "$job: running (PID $(cat "$PIDS/$job.pid"))"; else echo "$job: not running"; fi
   done
   echo "--- level choice"
@@ -212,6 +236,8 @@ status() {
   grep "optimize step" runs/bg-optimize.log 2>/dev/null | tail -2 || true
   ls datasets/beta-glycine/shards/*.h5 2>/dev/null | wc -l | sed 's/^/shards: /'
   echo "--- validation references: $(ls datasets/mini-eqm7/references/pbe0_aug-cc-pvtz/validation/*.json 2>/dev/null | wc -l) of 15"
+  echo "--- bake-off (examples/eqm7/bakeoff.yaml)"
+  PYTHONPATH=src "$PY" examples/eqm7/bakeoff.py done 2>&1 || true
   echo "--- polarizability labels: $(ls "$ALPHA_DIR"/*.json 2>/dev/null | wc -l) of 300"
   if [ -f "$PRETRAIN_FILE" ]; then
     echo "--- pretraining campaign $(cat "$PRETRAIN_FILE")"
@@ -236,7 +262,7 @@ case "${1:-start}" in
   watch) watch_jobs ;;
   stop)
     stop_job watcher
-    for job in level-choice bg-optimize val-refs raman-dft alpha-labels pretrain; do stop_job "$job"; done
+    for job in level-choice bg-optimize val-refs raman-dft bakeoff alpha-labels pretrain; do stop_job "$job"; done
     ;;
   status) status ;;
   nice) renice_jobs "${2:-19}" ;;

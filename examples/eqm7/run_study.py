@@ -23,8 +23,9 @@ temporary file and renamed, so a killed run leaves no half-written result)::
                     molecules) and WORKDIR/polarizability/pbe0_subset/MODEL.json
     ir              every model: optimisation from the DFT geometry, harmonic IR
                     -> WORKDIR/ir/MODEL.json
-    md              NVT runs (500 fs, 300 K, 0.5 fs) per test molecule x model
-                    -> WORKDIR/md/MODEL/NAME/{trajectory.xyz, analysis.json}
+    md              NVT runs (500 fs, 300 K, 0.5 fs) per test molecule x model (at most
+                    md.max_molecules of them) -> WORKDIR/md/MODEL/NAME/{trajectory.xyz,
+                    analysis.json}
     table           RESULTS_DIR/results.json + results.md (paper's numbers beside ours,
                     issue 15's targets with the measured values) and the figures of the
                     chosen groups' models: Figure 4 PNG (aziridine, 3-(methylamino)but-2-enal),
@@ -34,6 +35,16 @@ temporary file and renamed, so a killed run leaves no half-written result)::
                     src/emlpack/pretrained/NAME/ when status is final, else
                     WORKDIR/pretrained/NAME/ (load it with load_pretrained(NAME, root=...))
     all             every stage above in this order
+
+``split: val`` (default ``test``) points the molecule stages at the card's validation
+molecules instead, for choices that must never see the test ones (the bake-off of issue 51,
+``bakeoff.py``): evaluate scores the shards' validation configurations (-> WORKDIR/eval/val/),
+polarizability, ir and md use the references in DATA/references/LEVEL/validation (written by
+``validation_references.py``: polarizabilities, no Hessian, so ir skips) and the validation
+molecules (-> WORKDIR/polarizability/val/, WORKDIR/ir/val/, WORKDIR/md/MODEL/NAME); the
+second test set is not used; dft, table and export refuse (they are the test molecules'). The
+outputs do not collide with a test-split run's, and the bake-off uses a workdir of its own per
+candidate anyway. The train stage is the same with either split (the card's train/val split).
 
 Usage (from the project root)::
 
@@ -131,7 +142,12 @@ def load_config(path: str | Path, overrides: list[str] = ()) -> dict:
     cfg.setdefault("results_dir", str(HERE))
     cfg.setdefault("data", "datasets/mini-eqm7")
     cfg.setdefault("seeds", [0, 1, 2, 3])
+    cfg.setdefault("split", "test")
     return cfg
+
+
+#: the molecules a study is judged on (``split``): the card's split names
+SPLITS = ("test", "val")
 
 
 class Study:
@@ -147,6 +163,26 @@ class Study:
         self.log = log
         self.work: Counter = Counter()
         self._shards = None
+        _ = self.split  # a bad split: one clear line before any work
+
+    @property
+    def split(self) -> str:
+        """The card's split whose molecules the molecule stages use (``split``): ``test`` (the
+        study's tables) or ``val`` (choices that must not see the test molecules)."""
+        split = str(self.cfg.get("split") or "test")
+        if split not in SPLITS:
+            raise SystemExit(f"split: {' or '.join(SPLITS)}, got {split!r}")
+        return split
+
+    def sets(self) -> tuple[str, ...]:
+        """The molecule sets of the model stages: the split's own (``test`` or ``val``), then
+        with split test the second test set (``pbe0_subset``, the authors' six molecules)."""
+        return ("test", "pbe0_subset") if self.split == "test" else (self.split,)
+
+    def require_test_split(self, stage: str, why: str) -> None:
+        """Stop ``stage`` with one line when the study runs on the validation molecules."""
+        if self.split != "test":
+            raise SystemExit(f"{stage}: not with split {self.split} ({why})")
 
     def progress(self, items, stage: str, unit: str):
         """``items`` with a progress bar on stderr (:func:`emlpack.progress.progress`: rate
@@ -159,17 +195,20 @@ class Study:
 
     @property
     def dft_dir(self) -> Path:
-        """Where the DFT references of the test molecules live: ``dft.dir``, by default
+        """Where the DFT references of the split's molecules live: ``dft.dir``, by default
         ``DATA/references/LEVEL`` beside the campaign's shards (hours of DFT per molecule:
         small immutable files, committed with the data set; the level in the path keeps a
-        test level from ever mixing with the paper's)."""
+        test level from ever mixing with the paper's); with split val its ``validation/``
+        folder (``validation_references.py``)."""
         from emlpack.qm.levels import parse_level
 
         d = self.cfg.get("dft", {})
         if d.get("dir"):
-            return Path(d["dir"])
-        level = parse_level(d.get("level", "paper")).name
-        return self.data / "references" / level.replace("/", "_")
+            base = Path(d["dir"])
+        else:
+            base = self.data / "references" / parse_level(d.get("level", "paper")).name \
+                .replace("/", "_")
+        return base if self.split == "test" else base / "validation"
 
     # ------------------------------------------------------------------ data
     def shards(self):
@@ -191,9 +230,10 @@ class Study:
 
         return read_molecule_table(self.data)
 
-    def test_molecules(self) -> list[dict]:
-        """Test molecules of the card (optionally limited by ``molecules``/``max_molecules``)."""
-        rows = [m for m in self.molecules() if m["split"] == "test"]
+    def split_molecules(self) -> list[dict]:
+        """The card's molecules of the study's split, test or validation (optionally limited
+        by ``molecules``/``max_molecules``)."""
+        rows = [m for m in self.molecules() if m["split"] == self.split]
         names = self.cfg.get("molecules")
         if names:
             rows = [m for m in rows if m["name"] in set(names)]
@@ -208,10 +248,20 @@ class Study:
         return [{"name": name, "smiles": smiles, "split": "pbe0_subset"}
                 for name, smiles in listed.items() if not names or name in set(names)]
 
-    def reference_molecules(self, set_name: str = "test") -> list[dict]:
-        """The molecules of ``set_name`` (``test``: the card's; ``pbe0_subset``: the second
-        test set's) whose DFT references the model stages compare with."""
-        return self.test_molecules() if set_name == "test" else self.second_set_molecules()
+    def md_molecules(self) -> list[dict]:
+        """The split's molecules of the md stage: at most ``md.max_molecules`` of them, evenly
+        spaced in the card's order (null: all)."""
+        return _subsample(self.split_molecules(), self.cfg.get("md", {}).get("max_molecules"))
+
+    def reference_molecules(self, set_name: str | None = None) -> list[dict]:
+        """The molecules of ``set_name`` (None: the split's, ``test`` or ``val``: the card's;
+        ``pbe0_subset``: the second test set's) whose DFT references the model stages compare
+        with."""
+        set_name = set_name or self.split
+        if set_name not in self.sets():
+            raise SystemExit(f"{set_name}: not a molecule set of split {self.split}"
+                             f" ({', '.join(self.sets())})")
+        return self.split_molecules() if set_name == self.split else self.second_set_molecules()
 
     # ------------------------------------------------------------------ models
     def groups(self) -> dict[str, bool]:
@@ -342,6 +392,18 @@ def step_schedule(training: dict, n_train: int) -> list[str]:
             "training.max_time_minutes=null", "training.patience=1000000"]
 
 
+def training_progress(run: Path) -> dict | None:
+    """How far the training in ``run`` is, from its ``last.pt``: ``cpu_seconds`` (CPU seconds
+    over all resumes, ``training.max_cpu_minutes``; None for a run before 2026-12-02) and
+    ``epochs``; None without a last.pt."""
+    from emlpack.nn.checkpoint import read_checkpoint
+
+    if not (run / "last.pt").exists():
+        return None
+    state = read_checkpoint(run / "last.pt")["metadata"].get("training") or {}
+    return {"cpu_seconds": state.get("cpu_seconds"), "epochs": int(state.get("epoch", 0))}
+
+
 def stage_train(study: Study) -> list[Path]:
     from emlpack.train.config import load_config as load_train_config
     from emlpack.train.trainer import train
@@ -387,6 +449,7 @@ def stage_train(study: Study) -> list[Path]:
             else []
         best_row = min(rows, key=lambda r: float(r["val_loss"])) if rows else {}
         _write_json(done, {"best": str(best), "epochs": len(rows),
+                           "cpu_seconds": (training_progress(run) or {}).get("cpu_seconds"),
                            "n_configurations": n_data,
                            "n_train": int(len(split["train"])),
                            "n_val": int(len(split["val"])),
@@ -401,14 +464,16 @@ def stage_train(study: Study) -> list[Path]:
 
 # ---------------------------------------------------------------------- evaluate
 def test_sets(study: Study) -> dict[str, list]:
-    """``{"test": [...], "pbe0_subset": [...]}`` (the second only when its file exists)."""
+    """The configurations the evaluate stage scores, by set: ``{"test": [...], "pbe0_subset":
+    [...]}`` (the second only when its file exists), with split val ``{"val": [...]}`` (the
+    shards' validation configurations, no second set)."""
     e = study.cfg.get("evaluate", {})
     data = study.shards()
     split = data.split_indices()
-    sets = {"test": _subsample([data.structures[i] for i in split["test"]],
-                               e.get("max_structures"))}
+    sets = {study.split: _subsample([data.structures[i] for i in split[study.split]],
+                                    e.get("max_structures"))}
     second = e.get("second_test_set")
-    if second and Path(second).exists():
+    if "pbe0_subset" in study.sets() and second and Path(second).exists():
         from emlpack.data.dataset import load_data
 
         structures, _ = load_data(second)
@@ -423,7 +488,7 @@ def stage_evaluate(study: Study) -> dict:
     models = study.require_models()
     sets = test_sets(study)
     second = e.get("second_test_set")
-    if "pbe0_subset" not in sets:
+    if "pbe0_subset" in study.sets() and "pbe0_subset" not in sets:
         study.log(f"evaluate: {second} not found; the second test set is skipped")
     out = {}
     for set_name, structures in sets.items():
@@ -703,6 +768,8 @@ def stage_dft(study: Study) -> dict:
     molecule's static reference (polarizabilities), then the second test set's, then the test
     molecules' Hessians (hours each), cheapest first (``reference_split.reference_cost``: force
     calls left x basis functions^2.5)."""
+    study.require_test_split("dft", "the validation molecules' references come from"
+                             " examples/eqm7/validation_references.py")
     from emlpack.qm.pyscf_labeler import PySCFLabeler
 
     d = study.cfg.get("dft", {})
@@ -719,7 +786,7 @@ def stage_dft(study: Study) -> dict:
         sys.path.insert(0, str(HERE))
     from reference_split import reference_cost  # the Hessian's cost: calls left x basis^2.5
 
-    plan = dft_plan(study.test_molecules(), figure, study.second_set_molecules(),
+    plan = dft_plan(study.split_molecules(), figure, study.second_set_molecules(),
                     ir_cost=lambda name: reference_cost(study.dft_dir, name))
     for row, part in study.progress(plan, "dft", "part"):
         name = row["name"]
@@ -754,10 +821,10 @@ def stage_dft(study: Study) -> dict:
     return out
 
 
-def dft_results(study: Study, set_name: str = "test") -> dict[str, dict]:
-    """The finished DFT references of the molecules of ``set_name`` (Study.reference_molecules),
-    by name: the static reference (``NAME.json``) with the harmonic one (``NAME.ir.json``)
-    merged in when it is finished."""
+def dft_results(study: Study, set_name: str | None = None) -> dict[str, dict]:
+    """The finished DFT references of the molecules of ``set_name`` (Study.reference_molecules;
+    None: the split's), by name: the static reference (``NAME.json``) with the harmonic one
+    (``NAME.ir.json``) merged in when it is finished."""
     out = {}
     for row in study.reference_molecules(set_name):
         r = _read_json(study.dft_dir / f"{row['name']}.json")
@@ -781,22 +848,27 @@ def dft_structure(r: dict):
 
 
 # ---------------------------------------------------------------------- polarizability
-def stage_file(study: Study, stage: str, name: str, set_name: str = "test") -> Path:
-    """WORKDIR/STAGE/MODEL.json (the card's test molecules) or WORKDIR/STAGE/SET/MODEL.json."""
+def stage_file(study: Study, stage: str, name: str, set_name: str | None = None) -> Path:
+    """WORKDIR/STAGE/MODEL.json (the card's test molecules) or WORKDIR/STAGE/SET/MODEL.json
+    (``set_name`` None: the split's, so ``val`` with split val)."""
     folder = study.workdir / stage
+    set_name = set_name or study.split
     return (folder if set_name == "test" else folder / set_name) / f"{name}.json"
 
 
 def _at_dft_optima(study: Study, stage: str, row: Callable[[object, object], dict],
-                   set_name: str = "test") -> None:
+                   set_name: str | None = None) -> None:
     """Stage ``stage`` of every model at the DFT optimum of every reference molecule of
-    ``set_name``: ``row(model, structure)`` (the DFT structure with its Boys centres) gives one
-    molecule's JSON row; the model's file (``stage_file``) is skipped when it holds every
-    reference molecule."""
+    ``set_name`` (None: the split's): ``row(model, structure)`` (the DFT structure with its
+    Boys centres) gives one molecule's JSON row; the model's file (``stage_file``) is skipped
+    when it holds every reference molecule."""
+    set_name = set_name or study.split
     refs = dft_results(study, set_name)
     if not refs:
-        study.log(f"{stage}: no DFT reference of the {set_name} molecules yet (run the dft"
-                  " stage), skipped")
+        source = ("the dft stage" if set_name != "val"
+                  else "examples/eqm7/validation_references.py")
+        study.log(f"{stage}: no DFT reference of the {set_name} molecules yet ({source}),"
+                  " skipped")
         return
     for group, name, path in study.progress(study.require_models(), stage, "model"):
         target = stage_file(study, stage, name, set_name)
@@ -829,20 +901,29 @@ def stage_polarizability(study: Study) -> None:
                 out["failure"] = f"response failed: {exc}"
         return out
 
-    for set_name in ("test", "pbe0_subset"):
+    for set_name in study.sets():
         _at_dft_optima(study, "polarizability", row, set_name)
 
 
-def polarizability_summary(study: Study, set_name: str = "test") -> dict | None:
+def isotropic_error(tensor, reference) -> float:
+    """|Δα_iso| / α_iso of a model's polarizability tensor against the DFT one (bohr³ both)."""
+    ref = float(np.trace(np.asarray(reference))) / 3.0
+    return abs(float(np.trace(np.asarray(tensor))) / 3.0 - ref) / ref
+
+
+def polarizability_summary(study: Study, set_name: str | None = None) -> dict | None:
     """Polarizability errors of every model (and group ensemble) at the DFT optima of the
-    molecules of ``set_name`` (the polarizability stage's files), None before any."""
+    molecules of ``set_name`` (None: the split's; the polarizability stage's files), None
+    before any: components (bohr³: MAE, median), failures (``error_rate``) and the isotropic
+    polarizability's relative error (``isotropic_median``: median of |Δα_iso|/α_iso over the
+    molecules, ``isotropic_within_10pct``: how many within 10 %, of ``isotropic_compared``)."""
     refs = dft_results(study, set_name)
     per_group: dict[str, dict] = {}
     for group, name, _ in study.models():
         r = _read_json(stage_file(study, "polarizability", name, set_name))
         if r is None:
             continue
-        err, fails = [], 0
+        err, iso, fails = [], [], 0
         for mol, row in r["molecules"].items():
             if mol not in refs:
                 continue
@@ -851,10 +932,15 @@ def polarizability_summary(study: Study, set_name: str = "test") -> dict | None:
                 continue
             err.append(np.array(row["polarizability_bohr3"])
                        - np.array(refs[mol]["polarizability_bohr3"]))
+            iso.append(isotropic_error(row["polarizability_bohr3"],
+                                        refs[mol]["polarizability_bohr3"]))
         e = np.abs(np.concatenate([x.ravel() for x in err])) if err else np.zeros(0)
         per_group.setdefault(group, {})[name] = {
             "mae": float(e.mean()) if e.size else None,
             "median": float(np.median(e)) if e.size else None,
+            "isotropic_median": float(np.median(iso)) if iso else None,
+            "isotropic_within_10pct": int(sum(x <= 0.1 for x in iso)),
+            "isotropic_compared": len(iso),
             "error_rate": fails / max(len(r["molecules"]), 1), "n_molecules": len(r["molecules"]),
             "tensors": {m: row.get("polarizability_bohr3") for m, row in r["molecules"].items()}}
     if not per_group or not refs:
@@ -877,6 +963,7 @@ def polarizability_summary(study: Study, set_name: str = "test") -> dict | None:
             "mae": mean_std([m["mae"] for m in models.values()]),
             "median": mean_std([m["median"] for m in models.values()]),
             "error_rate": mean_std([m["error_rate"] for m in models.values()]),
+            "isotropic_median": mean_std([m["isotropic_median"] for m in models.values()]),
             "ensemble_mae": float(e.mean()) if e.size else None,
             "ensemble_median": float(np.median(e)) if e.size else None,
         }
@@ -917,6 +1004,10 @@ def stage_ir(study: Study) -> None:
             out["failure"] = not_a_minimum(out["frequencies"])
         return out
 
+    if study.split != "test" and not ir_references(study):
+        study.log(f"ir: no harmonic DFT reference of the {study.split} molecules"
+                  f" ({study.dft_dir} holds polarizabilities), skipped")
+        return
     _at_dft_optima(study, "ir", row)
 
 
@@ -1010,7 +1101,7 @@ def ir_summary(study: Study) -> dict | None:
                                    "modes": len(r["frequencies_cm-1"])}
                                for m, r in sorted(refs.items())}}
     for group, name, _ in study.models():
-        r = _read_json(study.workdir / "ir" / f"{name}.json")
+        r = _read_json(stage_file(study, "ir", name))
         if r is None:
             continue
         # a failed optimisation (bonding changed: another molecule, e.g. a tautomer; broken
@@ -1086,7 +1177,7 @@ def figure4(study: Study, out_dir: Path) -> list[str]:
         mols = list(refs)[:2]
     if not mols:
         return []
-    per_model = {name: _read_json(study.workdir / "ir" / f"{name}.json")
+    per_model = {name: _read_json(stage_file(study, "ir", name))
                  for _, name, _ in study.models()}
     grid = np.arange(0.0, 4000.0, 1.0)
     labels: list[str] = []
@@ -1149,7 +1240,7 @@ def stage_md(study: Study) -> None:
     discard = int(c.get("discard_steps", 10))
     for group, name, path in study.progress(study.require_models(), "md", "model"):
         model = None
-        for row in study.test_molecules():
+        for row in study.md_molecules():
             run = study.workdir / "md" / name / row["name"]
             target = run / "analysis.json"
             if target.exists():
@@ -1252,7 +1343,7 @@ def figure3(study: Study, summary: dict, out_dir: Path) -> dict[str, list[str]]:
 def md_summary(study: Study) -> dict | None:
     rows = []
     for _, name, _ in study.models():
-        for row in study.test_molecules():
+        for row in study.md_molecules():
             r = _read_json(study.workdir / "md" / name / row["name"] / "analysis.json")
             if r is not None:
                 rows.append(r)
@@ -1495,6 +1586,8 @@ def data_summary(study: Study) -> dict:
 
 
 def stage_table(study: Study, out_dir: Path | None = None) -> dict:
+    study.require_test_split("table", "the study's tables are the test molecules'; the"
+                             " bake-off's is examples/eqm7/bakeoff.py table")
     out_dir = Path(out_dir or study.cfg.get("results_dir", HERE))
     models = study.models()
     training = {}
@@ -1800,6 +1893,7 @@ def stage_export(study: Study) -> Path:
     Into the package (``src/emlpack/pretrained/NAME``) only when the study's ``status`` is
     ``final`` (the full campaign data set); a preliminary ensemble goes to
     ``WORKDIR/pretrained/NAME`` so that no half-trained model ships by accident."""
+    study.require_test_split("export", "its card quotes the test molecules' errors")
     from emlpack.pretrained import PRETRAINED_DIR, export_pretrained
 
     e = study.cfg.get("export", {}) or {}

@@ -712,7 +712,7 @@ def test_dft_optimisation_resumes_on_a_fresh_machine_as_if_uninterrupted(tmp_pat
             "dft.fmax=1e-4", "dft.max_steps=30", f"dft.dir={work / 'refs'}"])
         return mod.Study(cfg, log=lambda m: None)
 
-    row = next(r for r in study(tmp_path / "w").test_molecules())
+    row = next(r for r in study(tmp_path / "w").split_molecules())
     labeler = PySCFLabeler("tiny", boys_starts=1, reuse_density=True)
     whole = mod.dft_static(study(tmp_path / "whole"), row, labeler)
 
