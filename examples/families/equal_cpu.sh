@@ -34,14 +34,28 @@ for f in schnet painn; do
         --subset val -o "$OUT/$f/evaluation" --threads 1 --quiet >"$OUT/$f-evaluate.log" 2>&1 &
 done
 wait
-$PY - "$OUT" <<'PY'
-import json, sys
+$PY - "$OUT" "$MINUTES" <<'PY'
+import csv, json, sys
 from pathlib import Path
-out = Path(sys.argv[1])
+out, minutes = Path(sys.argv[1]), float(sys.argv[2])
 rows = {}
 for f in ("schnet", "painn"):
-    r = json.loads((out / f / "evaluation" / "results.json").read_text())
-    rows[f] = r
-Path("examples/families/equal_cpu.json").write_text(json.dumps(rows, indent=1, default=str))
-print(json.dumps(rows, indent=1, default=str)[:3000])
+    e = json.loads((out / f / "evaluation" / "evaluation.json").read_text())[0]
+    log = list(csv.DictReader((out / f / "log.csv").open()))
+    best = min(log, key=lambda r: float(r["val_loss"]))
+    st, dy = e["static"], e["dynamic"]
+    rows[f] = {"config": (out / f / "config.yaml").read_text().split("model:")[1].split(
+                   "augmentation:")[0].strip(),
+               "minutes": minutes, "epochs": len(log), "steps": int(log[-1]["step"]),
+               "best_epoch": int(best["epoch"]),
+               "val_core_force_mae_meV_per_A": 1e3 * st["forces"]["mae"],
+               "val_pair_force_mae_meV_per_A": 1e3 * st["pair_forces"]["mae"],
+               "val_energy_mae_meV_per_atom": 1e3 * st["energy"]["mae"],
+               "pair_field_slope": st["pair_field_slope"],
+               "dynamic_core_force_mae_meV_per_A": 1e3 * dy["forces"]["mae"],
+               "dynamic_error_rate": dy["error_rate"], "n_structures": e["n_structures"]}
+Path("examples/families/equal_cpu.json").write_text(json.dumps(rows, indent=1) + "\n")
+for f, r in rows.items():
+    print(f, {k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()
+              if k != "config"})
 PY
