@@ -1,6 +1,6 @@
 """The training forward (``EMLP.forward(parameters_only=True)``): the same values as the plain
 forward, and the same parameter gradients of a force and stress loss, for every family;
-SchNet's written-out length gradient against autograd."""
+SchNet's written-out length gradient and PaiNN's vector gradient against autograd."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from emlpack.nn.graph import collate
-from emlpack.nn.short_range import LengthGradient, schnet_gradient
+from emlpack.nn.short_range import LengthGradient, VectorGradient, painn_gradient, schnet_gradient
 from emlpack.nn.short_range.common import edge_lengths
 from tests.nn.helpers import (
     FAMILY_PARAMS,
@@ -35,8 +35,8 @@ def _loss(out: dict) -> torch.Tensor:
 def test_parameters_only_forward_equals_the_plain_one(family, crystal, compiled):
     """Energies, forces, stress and every parameter gradient of a loss made of them: the
     training path against the double backward through the positions (float64); with
-    ``compiled`` SchNet takes its written-out length gradient (here with torch.compile
-    switched off: the same code, run eagerly)."""
+    ``compiled`` SchNet takes its written-out length gradient and PaiNN its written-out vector
+    gradient (here with torch.compile switched off: the same code, run eagerly)."""
     model = random_model(family=family).train()
     structures = [water_crystal(field=(0.01, -0.02, 0.03))] if crystal else [
         water_molecule(), methane(field=(0.02, 0.0, -0.01))]
@@ -95,16 +95,54 @@ def test_schnet_length_gradient_equals_autograd():
         np.testing.assert_allclose(d.detach(), d_ref, rtol=0, atol=tol * float(d_ref.abs().max()))
 
 
+def test_painn_vector_gradient_equals_autograd():
+    """PaiNN's energies and dE/dd of the written-out reverse pass against autograd (float64
+    to rounding, float32 to its precision), including a pair on a core (|d| ~ 1e-11 Å),
+    edges on the cosine switch, and the parameter gradients of a loss of both."""
+    for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 2e-5)):
+        model = random_model(family="painn", dtype=dtype)
+        sr = model.short_range
+        assert isinstance(sr, VectorGradient)
+        g = collate([water_crystal(), methane()], model.config.cutoff, model.config.gcut,
+                    dtype)
+        d = model.edge_vectors(g, g.positions, g.cell).detach()
+        d[0] = torch.tensor([1e-11, -2e-12, 5e-12], dtype=dtype)
+        lengths = edge_lengths(d)
+        assert bool(((lengths > 3.5) & (lengths < 4.0)).any())
+        dd = d.clone().requires_grad_(True)
+        e_ref = sr(g.numbers, dd, g.edge_i, g.edge_j)
+        (d_ref,) = torch.autograd.grad(e_ref.sum(), dd, create_graph=True)
+        e, de = sr.energies_and_vector_gradient(g.numbers, d, g.edge_i, g.edge_j)
+        np.testing.assert_allclose(e.detach(), e_ref.detach(), rtol=0,
+                                   atol=tol * float(e_ref.detach().abs().max()))
+        np.testing.assert_allclose(de.detach(), d_ref.detach(), rtol=0,
+                                   atol=tol * float(d_ref.detach().abs().max()))
+        if dtype != torch.float64:
+            continue
+        weights = torch.linspace(-1.0, 1.0, de.numel(), dtype=dtype).view_as(de)
+        params = list(sr.parameters())
+        g_ref = torch.autograd.grad((e_ref**2).sum() + (weights * d_ref**3).sum(), params)
+        g_new = torch.autograd.grad((e**2).sum() + (weights * de**3).sum(), params)
+        for (name, _), a, b in zip(sr.named_parameters(), g_ref, g_new, strict=True):
+            assert float((a - b).abs().max()) <= 1e-11 * float(a.abs().max()), name
+
+
 @pytest.mark.slow
-def test_compiled_training_step_equals_the_double_backward():
-    """The SchNet training step through torch.compile (about a minute to compile): loss
-    gradients within float64 rounding of the double backward's."""
-    model = random_model().train()
-    g = model.graph([water_molecule(), methane(field=(0.02, 0.0, -0.01))])
+@pytest.mark.parametrize("family", ["schnet", "painn"])
+def test_compiled_training_step_equals_the_double_backward(family):
+    """The training step through torch.compile (a minute or two to compile): loss gradients
+    within float64 rounding of the double backward's, on a molecule batch and (another batch
+    size: no recompilation needed to be right) a periodic crystal with stress."""
+    model = random_model(family=family).train()
     params = [p for p in model.parameters() if p.requires_grad]
-    plain = torch.autograd.grad(_loss(model(g, create_graph=True)), params)
-    out = model(g, create_graph=True, parameters_only=True, compiled=True)
-    fast = torch.autograd.grad(_loss(out), params)
-    assert schnet_gradient.compile_failure() is None  # compiled, no fallback to eager
-    for a, b in zip(plain, fast, strict=True):
-        assert float((a - b).abs().max()) <= 1e-10 * (float(a.abs().max()) + 1e-30)
+    batches = [([water_molecule(), methane(field=(0.02, 0.0, -0.01))], False),
+               ([water_crystal(field=(0.01, -0.02, 0.03))], True)]
+    for structures, crystal in batches:
+        g = collate(structures, model.config.cutoff, model.config.gcut, torch.float64)
+        plain = torch.autograd.grad(_loss(model(g, stress=crystal, create_graph=True)), params)
+        out = model(g, stress=crystal, create_graph=True, parameters_only=True, compiled=True)
+        fast = torch.autograd.grad(_loss(out), params)
+        module = schnet_gradient if family == "schnet" else painn_gradient
+        assert module.compile_failure() is None  # compiled, no fallback to eager
+        for a, b in zip(plain, fast, strict=True):
+            assert float((a - b).abs().max()) <= 1e-10 * (float(a.abs().max()) + 1e-30)

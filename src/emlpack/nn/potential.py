@@ -31,6 +31,7 @@ from emlpack.nn.short_range import (
     HeldEdges,
     HoldsEdges,
     LengthGradient,
+    VectorGradient,
     build_short_range,
     family_defaults,
     resolve_params,
@@ -300,7 +301,8 @@ class EMLP(nn.Module):
         ``parameters_only`` (training): the outputs are differentiable in the parameters only,
         not in the positions (:meth:`_forward_parameters_only`, the same values; one
         backward pass for a family with the capability
-        :class:`~emlpack.nn.short_range.protocol.LengthGradient`, through ``torch.compile``
+        :class:`~emlpack.nn.short_range.protocol.LengthGradient` or
+        :class:`~emlpack.nn.short_range.protocol.VectorGradient`, through ``torch.compile``
         with ``compiled``).
         """
         if create_graph is None:
@@ -341,8 +343,9 @@ class EMLP(nn.Module):
         virial ``sum_e d_e (x) dE/dd_e``): with ``compiled``, from the family's written-out
         length gradient through ``torch.compile`` (capability
         :class:`~emlpack.nn.short_range.protocol.LengthGradient`, ``dE/dd = dE/dr d / r``;
-        uncompiled it is slower than autograd), else by autograd in ``d`` with
-        ``create_graph=True``."""
+        uncompiled it is slower than autograd) or its written-out vector gradient (capability
+        :class:`~emlpack.nn.short_range.protocol.VectorGradient`, PaiNN), else by autograd in
+        ``d`` with ``create_graph=True``."""
         n, b = g.positions.shape[0], g.n_structures
         with torch.enable_grad():
             pos = g.positions.detach().requires_grad_(True)
@@ -361,6 +364,9 @@ class EMLP(nn.Module):
             atomic, dedr = sr.energies_and_length_gradient(g.numbers, r, g.edge_i, g.edge_j,
                                                            compiled=compiled)
             ded = (dedr / r)[:, None] * d
+        elif compiled and isinstance(sr, VectorGradient):
+            atomic, ded = sr.energies_and_vector_gradient(g.numbers, d, g.edge_i, g.edge_j,
+                                                          compiled=compiled)
         else:
             d = d.requires_grad_(True)
             atomic = sr(g.numbers, d, g.edge_i, g.edge_j)

@@ -26,6 +26,7 @@ from emlpack.nn.short_range.protocol import (
     LengthHessian,
     ShortRange,
     TabulatesEdges,
+    VectorGradient,
 )
 from emlpack.nn.short_range.registry import (
     FamilyError,
@@ -46,6 +47,7 @@ __all__ = [
     "LengthHessian",
     "ShortRange",
     "TabulatesEdges",
+    "VectorGradient",
     "build_short_range",
     "families",
     "family_defaults",

@@ -52,6 +52,7 @@ from emlpack import geometry
 from emlpack.errors import InputError
 from emlpack.nn.scatter import segment_sum
 from emlpack.nn.short_range.common import edge_lengths
+from emlpack.nn.short_range.painn_gradient import energies_and_vector_gradient
 from emlpack.nn.short_range.schnet import GaussianBasis
 
 __all__ = ["PaiNN"]
@@ -85,6 +86,9 @@ class PaiNN(nn.Module):
     ``cutoff_transition`` (Å), ``n_embeddings`` rows (particle numbers below it; 99 is the
     electron pair), ``message_norm`` (messages are divided by it), ``edge_eps`` (Å^2) and
     ``norm_eps`` (see the module docstring).
+
+    Capability :class:`~emlpack.nn.short_range.protocol.VectorGradient` (training):
+    :meth:`energies_and_vector_gradient`.
     """
 
     def __init__(
@@ -177,3 +181,16 @@ class PaiNN(nn.Module):
             v = dv if v is None else v + dv
             s, v = self.updates[t](s, v)
         return self.output(s).squeeze(-1)
+
+    def energies_and_vector_gradient(
+        self,
+        numbers: torch.Tensor,
+        vectors: torch.Tensor,
+        i: torch.Tensor,
+        j: torch.Tensor,
+        compiled: bool = False,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Capability :class:`~emlpack.nn.short_range.protocol.VectorGradient`: atomic
+        energies (N,) (eV) and ``dE/d(vectors)`` (E, 3) (eV/Å), the reverse pass written out
+        (:func:`~emlpack.nn.short_range.painn_gradient.energies_and_vector_gradient`)."""
+        return energies_and_vector_gradient(self, numbers, vectors, i, j, compiled=compiled)

@@ -58,6 +58,11 @@ module's class). Every caller has an exact generic path for a family without the
   then fits forces with one backward pass, optionally compiled (SchNet:
   :mod:`emlpack.nn.short_range.schnet_gradient`). Generic path: ``dE/d(vectors)`` by
   autograd with ``create_graph=True`` (a double backward).
+* :class:`VectorGradient`: ``energies_and_vector_gradient(numbers, vectors, i, j, compiled)``
+  returns the atomic energies (N,) and ``dE/d(vectors)`` (E, 3) of their sum as one
+  expression that is differentiable once in the parameters, for any family (PaiNN, whose
+  energy depends on the directions too: :mod:`emlpack.nn.short_range.painn_gradient`);
+  training uses it as :class:`LengthGradient`. Generic path: the same double backward.
 * :class:`FrozenAnyDtype`: with frozen parameters the family evaluates in the dtype of its
   input vectors whatever its parameters' dtype (SchNet casts its folded weights); the pair
   relaxation's float32 phase then runs on the float64 model. Generic path: that phase runs
@@ -76,7 +81,7 @@ from typing import Protocol, runtime_checkable
 import torch
 
 __all__ = ["FrozenAnyDtype", "HeldEdges", "HoldsEdges", "LengthGradient", "LengthHessian",
-           "ShortRange", "TabulatesEdges"]
+           "ShortRange", "TabulatesEdges", "VectorGradient"]
 
 
 @runtime_checkable
@@ -168,6 +173,24 @@ class LengthGradient(Protocol):
         """Atomic energies (N,) (eV) and ``dE/dr`` (E,) (eV/Å) of their sum in the edge
         lengths ``r`` (E,) (Å), differentiable in the parameters (not in ``r``);
         ``compiled``: through ``torch.compile`` where it works."""
+        ...
+
+
+@runtime_checkable
+class VectorGradient(Protocol):
+    """Capability: energies and their edge-vector gradient as one first-order expression."""
+
+    def energies_and_vector_gradient(
+        self,
+        numbers: torch.Tensor,
+        vectors: torch.Tensor,
+        i: torch.Tensor,
+        j: torch.Tensor,
+        compiled: bool = False,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Atomic energies (N,) (eV) and ``dE/d(vectors)`` (E, 3) (eV/Å) of their sum in the
+        half-list edge vectors ``vectors`` (E, 3) (Å), differentiable in the parameters (not
+        in ``vectors``); ``compiled``: through ``torch.compile`` where it works."""
         ...
 
 
