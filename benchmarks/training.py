@@ -5,9 +5,11 @@ family and per path of the force loss:
 * ``double_backward``: forces by autograd in the positions with ``create_graph=True``, the
   loss differentiated again (the trainer before 2026-12-02; ``predict(parameters_only=False)``);
 * ``parameters_only``: the electrostatics' forces computed without a graph (no parameters),
-  the short range's through the edge vectors; SchNet's length gradient written out
-  (:mod:`emlpack.nn.short_range.schnet_gradient`: one backward pass);
-* ``compiled``: the same through ``torch.compile`` (SchNet; compiled once before timing).
+  the short range's through the edge vectors by autograd (``create_graph=True``);
+* ``compiled``: the family's written-out gradient through ``torch.compile`` (compiled once
+  before timing; one backward pass): SchNet's length gradient
+  (:mod:`emlpack.nn.short_range.schnet_gradient`), PaiNN's vector gradient
+  (:mod:`emlpack.nn.short_range.painn_gradient`); families with neither capability skip it.
 
 The settings alternate block by block in one process (the machine is shared: only ratios
 measured this way mean something); every block takes the same batches, inside
@@ -140,6 +142,7 @@ def profile_step(stepper: Stepper, batches) -> dict:
 
 def bench_steps(args) -> dict:
     from emlpack.heap import reused_heap
+    from emlpack.nn.short_range import LengthGradient, VectorGradient
 
     result: dict = {"families": {}}
     with tempfile.TemporaryDirectory() as tmp:
@@ -150,7 +153,8 @@ def bench_steps(args) -> dict:
             if batches is None:
                 batches = list(trainer._loader(0))[: args.steps + 5]
             start = {k: v.clone() for k, v in trainer.model.state_dict().items()}
-            paths = [p for p in PATHS if p != "compiled" or family == "schnet"]
+            written_out = isinstance(trainer.model.short_range, LengthGradient | VectorGradient)
+            paths = [p for p in PATHS if p != "compiled" or written_out]
             exact = exact_gradients(trainer, batches[0])
             for name in paths:
                 s = Stepper(trainer, **PATHS[name])
