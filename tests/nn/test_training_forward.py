@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from torch._dynamo.utils import counters
 
 from emlpack.nn.graph import collate
 from emlpack.nn.short_range import LengthGradient, VectorGradient, painn_gradient, schnet_gradient
@@ -132,7 +133,11 @@ def test_painn_vector_gradient_equals_autograd():
 def test_compiled_training_step_equals_the_double_backward(family):
     """The training step through torch.compile (a minute or two to compile): loss gradients
     within float64 rounding of the double backward's, on a molecule batch and (another batch
-    size: no recompilation needed to be right) a periodic crystal with stress."""
+    size: no recompilation needed to be right) a periodic crystal with stress. Dynamo's
+    caches are reset first: a compiled function first called with dynamo disabled (the tests
+    above) is skipped for good, and would run eagerly here."""
+    torch._dynamo.reset()
+    compiled_before = counters["stats"]["unique_graphs"]
     model = random_model(family=family).train()
     params = [p for p in model.parameters() if p.requires_grad]
     batches = [([water_molecule(), methane(field=(0.02, 0.0, -0.01))], False),
@@ -146,3 +151,4 @@ def test_compiled_training_step_equals_the_double_backward(family):
         assert module.compile_failure() is None  # compiled, no fallback to eager
         for a, b in zip(plain, fast, strict=True):
             assert float((a - b).abs().max()) <= 1e-10 * (float(a.abs().max()) + 1e-30)
+    assert counters["stats"]["unique_graphs"] > compiled_before  # dynamo did compile
