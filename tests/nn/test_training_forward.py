@@ -128,6 +128,25 @@ def test_painn_vector_gradient_equals_autograd():
             assert float((a - b).abs().max()) <= 1e-11 * float(a.abs().max()), name
 
 
+def test_painn_compile_failure_falls_back_with_a_warning(monkeypatch, caplog):
+    """A compiler error in the PaiNN training step is logged and the step runs uncompiled
+    (same values), never raised; later calls do not try again."""
+    def broken(*args):
+        raise RuntimeError("inductor says no")
+
+    monkeypatch.setattr(painn_gradient, "_COMPILED", {"fn": broken})
+    model = random_model(family="painn").train()
+    g = model.graph(water_molecule())
+    plain = model(g, create_graph=True)
+    with caplog.at_level("WARNING", logger=painn_gradient.__name__):
+        out = model(g, create_graph=True, parameters_only=True, compiled=True)
+    assert "inductor says no" in (painn_gradient.compile_failure() or "")
+    assert any("goes on uncompiled" in r.getMessage() for r in caplog.records)
+    np.testing.assert_allclose(out["forces"].detach(), plain["forces"].detach(), rtol=1e-12,
+                               atol=1e-12)
+    model(g, create_graph=True, parameters_only=True, compiled=True)  # no second try
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("family", ["schnet", "painn"])
 def test_compiled_training_step_equals_the_double_backward(family):
