@@ -18,6 +18,7 @@ from emlpack.nn.short_range import (
     LengthHessian,
     ShortRange,
     TabulatesEdges,
+    VectorGradient,
     build_short_range,
     families,
     family_defaults,
@@ -67,6 +68,8 @@ def test_capabilities_are_found_by_method_not_class():
     assert isinstance(schnet, HoldsEdges) and isinstance(schnet, TabulatesEdges)
     assert isinstance(schnet, LengthHessian) and isinstance(schnet, FrozenAnyDtype)
     assert not isinstance(radial, HoldsEdges | TabulatesEdges | LengthHessian | FrozenAnyDtype)
+    assert isinstance(random_model(family="painn").short_range, VectorGradient)
+    assert not isinstance(radial, VectorGradient) and not isinstance(schnet, VectorGradient)
     model = random_model(family="radial")
     g = model.graph(methane())
     with pytest.raises(TypeError, match="'radial' cannot hold edges"):
