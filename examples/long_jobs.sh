@@ -6,8 +6,11 @@
 #                                        watcher that moves on as jobs end
 #   bash examples/long_jobs.sh status    what runs, counts, rates
 #   bash examples/long_jobs.sh stop      stop them; each saves and commits its finished work
-#   bash examples/long_jobs.sh nice [N]  renice the running jobs and their children to N
-#                                        (default 19: a measurement takes the cores; 0 after)
+#   bash examples/long_jobs.sh pause     SIGSTOP the running jobs and their children (a timing
+#                                        or an equal-CPU comparison takes the cores), and
+#   bash examples/long_jobs.sh resume    SIGCONT them (renice does not hold them back: the
+#                                        kernel's autogroups give every session's group an
+#                                        equal share whatever its tasks' nice values)
 #
 # The jobs, in the brief's order (two cores):
 #   level-choice  the cheap level's measurements (examples/qm7_cheap/level_choice.py; one
@@ -214,13 +217,13 @@ tree() {  # tree PID: the process and all its descendants
   for child in $(pgrep -P "$1" 2>/dev/null); do tree "$child"; done
 }
 
-renice_jobs() {  # renice_jobs N: the running jobs (not the watcher) and their children
+signal_jobs() {  # signal_jobs SIGNAL: the running jobs (not the watcher) and their children
   local job pids=""
   for job in level-choice bg-optimize val-refs raman-dft bakeoff alpha-labels pretrain; do
     running "$job" && pids="$pids $(tree "$(cat "$PIDS/$job.pid")" | tr "\n" " ")"
   done
   # shellcheck disable=SC2086
-  [ -n "$pids" ] && renice -n "$1" -p $pids >/dev/null && echo "reniced to $1:$pids"
+  [ -n "$pids" ] && kill "-$1" $pids && echo "SIG$1:$pids"
   return 0
 }
 
@@ -261,10 +264,12 @@ case "${1:-start}" in
     ;;
   watch) watch_jobs ;;
   stop)
+    signal_jobs CONT >/dev/null  # a paused job must run to see its SIGTERM
     stop_job watcher
     for job in level-choice bg-optimize val-refs raman-dft bakeoff alpha-labels pretrain; do stop_job "$job"; done
     ;;
   status) status ;;
-  nice) renice_jobs "${2:-19}" ;;
-  *) echo "usage: $0 [start|status|stop|nice [N]]" >&2; exit 2 ;;
+  pause) signal_jobs STOP ;;
+  resume) signal_jobs CONT ;;
+  *) echo "usage: $0 [start|status|stop|pause|resume]" >&2; exit 2 ;;
 esac

@@ -5,8 +5,9 @@
 #
 #   bash examples/families/equal_cpu.sh [MINUTES]     # default 60; resumable (re-run it)
 #
-# The two trainings run at once, one per core; run it with the long jobs reniced to 19
-# (`bash examples/long_jobs.sh nice`) so each training has its core. Outputs under
+# The two trainings run at once, one per core, each until it has used MINUTES of CPU time
+# (training.max_cpu_minutes, counted over resumes); pause the long jobs meanwhile
+# (`bash examples/long_jobs.sh pause`, then `resume`) so each training has its core. Outputs under
 # runs/families/ (not committed); the summary is examples/families/equal_cpu.json.
 # Learning-rate schedule: the study's train.yaml (lr 1e-3 halved every decay_epochs), with
 # decay_epochs chosen per family so that the rate halves about three times in the budget
@@ -18,7 +19,8 @@ PY=${PYTHON:-.venv/bin/python}
 OUT=runs/families
 mkdir -p "$OUT"
 common=(data.path=datasets/mini-eqm7 augmentation.enabled=true training.seed=0
-        training.max_time_minutes="$MINUTES" training.max_epochs=100000 training.patience=null
+        training.max_time_minutes=null training.max_cpu_minutes="$MINUTES"
+        training.max_epochs=100000 training.patience=null
         output.progress=false training.threads=1)
 OMP_NUM_THREADS=1 .venv/bin/emlp train examples/eqm7/train.yaml "${common[@]}" \
     output.dir="$OUT/schnet" training.decay_epochs=$((MINUTES * 87 / 60)) \
