@@ -73,9 +73,9 @@ sys.exit(0 if L.complete() else 1)" 2>/dev/null
 }
 
 bg_optimize_done() {  # the optimisation converged (optimization.json says so)
-  [ -f runs/bg_dzvp400/optimization.json ] && "$PY" -c "
+  [ -f runs/bg_sc212/optimization.json ] && "$PY" -c "
 import json, sys
-sys.exit(0 if json.load(open('runs/bg_dzvp400/optimization.json'))['converged'] else 1)"
+sys.exit(0 if json.load(open('runs/bg_sc212/optimization.json'))['converged'] else 1)"
 }
 
 start_level_choice() {
