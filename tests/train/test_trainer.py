@@ -508,3 +508,21 @@ def test_the_cpu_budget_counts_over_resumes(tmp_path, small_data, caplog):
     assert 1 < len(_log(tmp_path / "cpu")) < 100000
     total = read_checkpoint(tmp_path / "cpu" / "last.pt")["metadata"]["training"]["cpu_seconds"]
     assert total > spent
+
+
+def test_the_learning_rate_decays_with_the_cpu_time(tmp_path, small_data):
+    """``training.decay_cpu_minutes``: lr0 * factor ** (CPU seconds / decay), the CPU seconds
+    of the run over resumes, so the rate falls with each epoch and goes on falling after a
+    resume from where it was."""
+    cfg = _config(tmp_path, small_data, "lr", training={"max_epochs": 2, "lr": 1e-3})
+    decay = 0.01  # CPU minutes per halving: 0.6 s
+    train(load_config(cfg, [f"training.decay_cpu_minutes={decay}"]))
+    state = read_checkpoint(tmp_path / "lr" / "last.pt")["metadata"]["training"]
+    rates = [float(r["lr"]) for r in _log(tmp_path / "lr")]
+    assert rates[0] > rates[1]
+    # the logged rate is that of the last step, a little before the CPU seconds were saved
+    assert 1e-3 * 0.5 ** (state["cpu_seconds"] / (60 * decay)) <= rates[1] < 1e-3
+    train(load_config(cfg, [f"training.decay_cpu_minutes={decay}", "training.max_epochs=3"]))
+    assert float(_log(tmp_path / "lr")[2]["lr"]) < rates[1]
+    with pytest.raises(Exception, match="decay_cpu_minutes must be a positive number"):
+        load_config(cfg, ["training.decay_cpu_minutes=0"])

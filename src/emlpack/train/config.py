@@ -64,6 +64,9 @@ DEFAULTS: dict = {
         # CPU minutes of the training process over all resumes (equal-CPU comparisons on a
         # shared machine): the run stops after the epoch that passes them; None: no limit
         "max_cpu_minutes": None,
+        # the learning rate decays by decay_factor every this many CPU minutes of the run
+        # (over resumes) instead of every decay_epochs; None: by epochs
+        "decay_cpu_minutes": None,
         "patience": None,  # early stopping: epochs without improvement (None: off)
         "threads": None,
         # where the model trains: auto (the first CUDA GPU when PyTorch sees one, else the CPU),
@@ -247,8 +250,10 @@ def validate(cfg: dict) -> None:
             raise ConfigError(f"training.{key} must be a positive integer, got {t[key]!r}")
     if not (_number(t["lr"]) and t["lr"] >= 0):
         raise ConfigError(f"training.lr must be a number >= 0, got {t['lr']!r}")
-    for key in ("adam_eps", "decay_epochs", "max_time_minutes", "max_cpu_minutes"):
-        if key in ("max_time_minutes", "max_cpu_minutes") and t[key] is None:  # no limit
+    for key in ("adam_eps", "decay_epochs", "max_time_minutes", "max_cpu_minutes",
+                "decay_cpu_minutes"):
+        if key in ("max_time_minutes", "max_cpu_minutes", "decay_cpu_minutes") \
+                and t[key] is None:  # no limit / by epochs
             continue
         if not (_number(t[key]) and t[key] > 0):
             raise ConfigError(f"training.{key} must be a positive number, got {t[key]!r}")

@@ -24,7 +24,10 @@ snapshot folders are removed), committed to git with ``output.snapshot_commit``.
 command on a fresh clone goes on exactly where the last snapshot stopped.
 
 Learning rate: ``lr0 * decay_factor ** (step / (steps_per_epoch * decay_epochs))``, i.e.
-halved every ``decay_epochs`` epochs with the paper's defaults, decayed smoothly per step.
+halved every ``decay_epochs`` epochs with the paper's defaults, decayed smoothly per step; with
+``decay_cpu_minutes`` instead ``lr0 * decay_factor ** (cpu_seconds / (60 decay_cpu_minutes))``
+at every step, the run's CPU time counted over resumes (one process; a resume then continues
+the schedule but is not bit-for-bit the uninterrupted run).
 
 Data parallel: launched with ``torchrun --nproc_per_node K``, every process takes a slice of
 each global batch (same global batches as one process); the loss terms are divided by the
@@ -181,10 +184,21 @@ class Trainer:
         self.lineage: list[dict] = []
         self.batch_size = t["batch_size"]
         self.steps_per_epoch = len(self._epoch_batches(0))
-        decay_steps = max(1e-12, self.steps_per_epoch * float(t["decay_epochs"]))
+        # CPU seconds of this process spent training, summed over resumes (max_cpu_minutes,
+        # decay_cpu_minutes)
+        self._cpu_base, self._cpu_start = 0.0, time.process_time()
         factor = float(t["decay_factor"])
-        self.scheduler = torch.optim.lr_scheduler.LambdaLR(
-            self.optimizer, lambda step: factor ** (step / decay_steps))
+        if t["decay_cpu_minutes"] is None:
+            decay_steps = max(1e-12, self.steps_per_epoch * float(t["decay_epochs"]))
+            self.scheduler = torch.optim.lr_scheduler.LambdaLR(
+                self.optimizer, lambda step: factor ** (step / decay_steps))
+        else:  # by the run's CPU time (over resumes): equal-CPU comparisons of families
+            if self.world > 1:
+                raise ValueError("training.decay_cpu_minutes: one process only (the CPU time"
+                                 " differs between the processes of a data-parallel run)")
+            decay_s = 60.0 * float(t["decay_cpu_minutes"])
+            self.scheduler = torch.optim.lr_scheduler.LambdaLR(
+                self.optimizer, lambda step: factor ** (self.cpu_seconds() / decay_s))
         self.ddp = self.model
         if self.dist:
             self.ddp = torch.nn.parallel.DistributedDataParallel(
@@ -198,8 +212,6 @@ class Trainer:
         self.best = math.inf
         self.best_epoch = -1
         self.bad_epochs = 0
-        # CPU seconds of this process spent training, summed over resumes (max_cpu_minutes)
-        self._cpu_base, self._cpu_start = 0.0, time.process_time()
         self._val_batches = None
         self._training_domain: dict | None = None
 
