@@ -68,6 +68,7 @@ def load_bakeoff(path: str | Path = HERE / "bakeoff.yaml", overrides: list[str] 
     cfg.setdefault("seed", 0)
     cfg.setdefault("group", "aug")
     cfg.setdefault("lr", 1e-3)
+    cfg.setdefault("decay_cpu_minutes", None)
     for key in ("train_overrides", "study_overrides"):
         cfg[key] = list(cfg.get(key) or [])
     where = f"{path.name}"
@@ -85,9 +86,12 @@ def load_bakeoff(path: str | Path = HERE / "bakeoff.yaml", overrides: list[str] 
         if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", str(name)):
             raise SystemExit(f"{where}: candidate name {name!r}: letters, digits, . _ - only"
                              " (it names a folder)")
-        if not isinstance(c, dict) or not _positive(c.get("decay_epochs")):
+        if not isinstance(c, dict) or not (
+                _positive(c.get("decay_epochs")) or (c.get("decay_epochs") is None
+                                                     and _positive(cfg["decay_cpu_minutes"]))):
             raise SystemExit(f"{where}: candidate {name}: decay_epochs (a positive number of"
-                             " epochs per halving of the learning rate) is required")
+                             " epochs per halving of the learning rate) is required unless"
+                             " decay_cpu_minutes (every candidate's) is set")
         over = c.get("overrides") or []
         if not isinstance(over, list) or not all(isinstance(o, str) and "=" in o for o in over):
             raise SystemExit(f"{where}: candidate {name}: overrides must be a list of"
@@ -112,12 +116,22 @@ def chosen(bake: dict, only: list[str] | None) -> list[str]:
 def training_overrides(bake: dict, name: str) -> list[str]:
     """The training overrides of candidate ``name``'s model: the CPU budget and no other
     stop (no wall-time limit, no early stopping, epochs unbounded), lr halved every
-    ``decay_epochs``, then ``train_overrides`` and the candidate's own."""
+    ``decay_epochs`` (the candidate's) or else every ``decay_cpu_minutes`` of CPU time, then
+    ``train_overrides`` and the candidate's own."""
     c = bake["candidates"][name]
+    schedule = ([f"training.decay_epochs={c['decay_epochs']}"] if c.get("decay_epochs")
+                else [f"training.decay_cpu_minutes={bake['decay_cpu_minutes']}"])
     return [f"training.max_cpu_minutes={bake['cpu_minutes']}", "training.max_time_minutes=null",
             "training.max_epochs=100000000", "training.patience=null",
-            f"training.lr={bake['lr']}", f"training.decay_epochs={c['decay_epochs']}",
-            *bake["train_overrides"], *c["overrides"]]
+            f"training.lr={bake['lr']}", *schedule, *bake["train_overrides"], *c["overrides"]]
+
+
+def schedule_text(bake: dict, name: str) -> str:
+    """How candidate ``name``'s learning rate halves, in words."""
+    c = bake["candidates"][name]
+    if c.get("decay_epochs"):
+        return f"every {c['decay_epochs']:g} epochs"
+    return f"every {bake['decay_cpu_minutes']:g} CPU minutes"
 
 
 def candidate_config(bake: dict, name: str) -> dict:
@@ -200,7 +214,8 @@ def candidate_row(bake: dict, name: str) -> dict:
     md = _group(run_study.md_summary(study), group)
     return {
         "name": name, "overrides": bake["candidates"][name]["overrides"],
-        "decay_epochs": bake["candidates"][name]["decay_epochs"],
+        "decay_epochs": bake["candidates"][name].get("decay_epochs"),
+        "schedule": schedule_text(bake, name),
         "cpu_budget_minutes": bake["cpu_minutes"], "workdir": str(study.workdir),
         "complete": not pending, "pending": pending,
         "training": {"cpu_minutes": None if cpu is None else cpu / 60.0,
@@ -246,8 +261,8 @@ def markdown(result: dict) -> str:
         f" (PBE0/aug-cc-pVTZ, `{b['references_dir']}`), MD {b['md']}.", "",
         f"One model per candidate: seed {b['seed']}, {run_study.GROUP_LABEL[b['group']]},"
         f" {b['cpu_minutes']:g} CPU minutes of training each (`training.max_cpu_minutes`, over"
-        f" all resumes; no step schedule, no early stopping), lr {b['lr']:g} halved every"
-        " `decay_epochs` (the candidate's). A stage not finished yet: pending.", "",
+        f" all resumes; no step schedule, no early stopping), lr {b['lr']:g} halved as each"
+        " candidate says below. A stage not finished yet: pending.", "",
         "| candidate | CPU min | epochs | core-force MAE [meV/Å] | pair-force MAE [meV/Å] |"
         " pair-field slope | α_iso median \\|Δ\\|/DFT | α_iso within 10 % |"
         " α components median [bohr³] | dynamic error rate [%] | MD stable / runs |"
@@ -285,8 +300,8 @@ def markdown(result: dict) -> str:
               " `examples/eqm7/train.yaml`):", ""]
     for r in result["rows"]:
         over = ", ".join(f"`{o}`" for o in r["overrides"]) or "train.yaml as is"
-        lines.append(f"- **{r['name']}**: {over}; lr halved every {r['decay_epochs']:g}"
-                     f" epochs{'' if r['complete'] else '; pending: ' + ', '.join(r['pending'])}.")
+        lines.append(f"- **{r['name']}**: {over}; lr halved {r['schedule']}"
+                     f"{'' if r['complete'] else '; pending: ' + ', '.join(r['pending'])}.")
     return "\n".join(lines) + "\n"
 
 

@@ -197,8 +197,9 @@ def test_bad_bakeoff_config_is_one_line(tmp_path):
     mod = example_module("bakeoff")
     path = tmp_path / "b.yaml"
     path.write_text(yaml.safe_dump({"candidates": {"a": {"overrides": []}}}))
-    with pytest.raises(SystemExit, match="candidate a: decay_epochs .* is required"):
+    with pytest.raises(SystemExit, match="candidate a: decay_epochs .* is required unless"):
         mod.load_bakeoff(path)
+    assert mod.load_bakeoff(path, ["decay_cpu_minutes=30"])["candidates"]["a"]
     with pytest.raises(SystemExit, match="cpu_minutes must be a positive number"):
         mod.load_bakeoff(path, ["cpu_minutes=0"])
     path.write_text(yaml.safe_dump({"candidates": {"a b": {"decay_epochs": 3}}}))
@@ -211,6 +212,14 @@ def test_bad_bakeoff_config_is_one_line(tmp_path):
     assert cfg["split"] == "val" and cfg["training"]["steps"] is None
     assert cfg["workdir"] == "runs/bakeoff/v1-schnet" and cfg["seeds"] == [0]
     assert "training.max_cpu_minutes=120" in cfg["training"]["overrides"]
+    # the shipped schedule is by CPU time, the same for every family; decay_epochs replaces it
+    assert "training.decay_cpu_minutes=35" in cfg["training"]["overrides"]
+    assert not any(o.startswith("training.decay_epochs") for o in cfg["training"]["overrides"])
+    by_epochs = mod.load_bakeoff(overrides=["candidates.v1-schnet.decay_epochs=400"])
+    over = mod.training_overrides(by_epochs, "v1-schnet")
+    assert "training.decay_epochs=400" in over and not any("decay_cpu" in o for o in over)
+    assert mod.schedule_text(by_epochs, "v1-schnet") == "every 400 epochs"
+    assert mod.schedule_text(shipped, "painn-f64") == "every 35 CPU minutes"
     bad = mod.load_bakeoff(overrides=["candidates.v1-schnet.overrides=[model.bogus=1]"])
     with pytest.raises(SystemExit, match="bakeoff: candidate v1-schnet: unknown config key"):
         mod.run(bad, ["v1-schnet"], log=lambda m: None)
