@@ -196,7 +196,7 @@ def main() -> None:
             row["wannier90_cpu_s"] = round(run(["wannier90.x", "bg"], d), 1)
             wout = (d / "bg.wout").read_text() if (d / "bg.wout").exists() else ""
             c, spread = wannier90_centres(wout)
-            row["spread_A2"] = spread
+            row["spread_A2"] = spread if np.isfinite(spread) else None
             if len(c) == n_pairs:
                 c, _ = map_centres_to_cores(c, s.positions, s.cell)
                 row["vs_paper"] = compare(c, s.pairs, s.cell)
