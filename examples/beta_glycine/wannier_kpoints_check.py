@@ -33,6 +33,7 @@ import json
 import re
 import resource
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -45,25 +46,12 @@ from emlpack.qm.cp2k.input import CP2KSettings, build_input
 from emlpack.qm.cp2k.output import STRESS_SIGN, map_centres_to_cores
 from emlpack.units import EV_PER_A3_IN_GPA, HARTREE
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from kpoint_check import DIAGONALISATION, OT  # noqa: E402  (the same k-point SCF settings)
+
 HERE = Path(__file__).resolve().parent
 SHARED = HERE.parents[1].parent / "shared"
 RUNS = Path("runs/bg_wannier_kpoints")
-OT = """      &OT
-        MINIMIZER DIIS
-        PRECONDITIONER FULL_SINGLE_INVERSE
-      &END OT
-      &OUTER_SCF
-        EPS_SCF 1e-06
-        MAX_SCF 20
-      &END OUTER_SCF"""
-DIAGONALISATION = """      &DIAGONALIZATION
-        ALGORITHM STANDARD
-      &END DIAGONALIZATION
-      &MIXING
-        METHOD BROYDEN_MIXING
-        ALPHA 0.3
-        NBROYDEN 8
-      &END MIXING"""
 KPOINTS = """    &KPOINTS
       SCHEME MONKHORST-PACK {} {} {}
       FULL_GRID OFF

@@ -134,7 +134,8 @@ def test_painn_compile_failure_falls_back_with_a_warning(monkeypatch, caplog):
     def broken(*args):
         raise RuntimeError("inductor says no")
 
-    monkeypatch.setattr(painn_gradient, "_COMPILED", {"fn": broken})
+    monkeypatch.setattr(painn_gradient._STEP, "compiled", broken)
+    monkeypatch.setattr(painn_gradient._STEP, "failure", None)  # restored after the test
     model = random_model(family="painn").train()
     g = model.graph(water_molecule())
     plain = model(g, create_graph=True)

@@ -1,16 +1,20 @@
 """Formulas shared by the short-range families: the safe edge length, the eMLP's cosine cutoff
-and the shifted softplus (with its slopes as torch's autograd takes them)."""
+and the shifted softplus (with its slopes as torch's autograd takes them); and the compiled
+training step with its fallback (:class:`CompiledOnce`)."""
 
 from __future__ import annotations
 
+import logging
 import math
+from collections.abc import Callable
 
 import torch
 from torch import nn
 
 from emlpack import geometry
 
-__all__ = ["LN2", "cosine_cutoff", "edge_lengths", "shifted_softplus", "softplus_slopes"]
+__all__ = ["LN2", "CompiledOnce", "cosine_cutoff", "edge_lengths", "shifted_softplus",
+           "softplus_slopes"]
 
 LN2 = math.log(2.0)
 
@@ -41,3 +45,28 @@ def softplus_slopes(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     (threshold 20: slope 1 above, curvature 0 from 20 on)."""
     sig = torch.sigmoid(x)
     return torch.where(x > 20.0, 1.0, sig), torch.where(x >= 20.0, 0.0, sig * (1.0 - sig))
+
+
+class CompiledOnce:
+    """``fn`` through ``torch.compile`` (dynamic shapes: one compilation serves every batch
+    size), compiled at the first compiled call of the process. A compiler error is logged once
+    (``what`` names the step) and ``fn`` runs plainly from then on; :attr:`failure` says why."""
+
+    def __init__(self, fn: Callable, what: str, logger: logging.Logger) -> None:
+        self.fn, self.what, self.log = fn, what, logger
+        self.compiled: Callable | None = None
+        #: why the compiled call failed in this process (None: it did not, or was not tried)
+        self.failure: str | None = None
+
+    def __call__(self, *args, compiled: bool):
+        """``fn(*args)``, compiled when ``compiled`` and compiling has not failed."""
+        if compiled and self.failure is None:
+            if self.compiled is None:
+                self.compiled = torch.compile(self.fn, dynamic=True)
+            try:
+                return self.compiled(*args)
+            except Exception as err:  # noqa: BLE001 (inductor raises many kinds; fall back)
+                self.failure = repr(err)
+                self.log.warning("torch.compile of the %s training step failed (%.200r);"
+                                 " training goes on uncompiled", self.what, err)
+        return self.fn(*args)

@@ -37,13 +37,12 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
 
 import torch
 from torch import nn
 
 from emlpack.nn.scatter import segment_sum
-from emlpack.nn.short_range.common import edge_lengths
+from emlpack.nn.short_range.common import CompiledOnce, edge_lengths
 
 log = logging.getLogger(__name__)
 
@@ -202,21 +201,13 @@ def _energies_and_gradient(
     return energies, ded
 
 
-_COMPILED: dict[str, Callable] = {}
+_STEP = CompiledOnce(_energies_and_gradient, "PaiNN", log)
 
 
 def compile_failure() -> str | None:
     """Why ``torch.compile`` of the PaiNN training step failed in this process (None: it did
     not, or was not tried)."""
-    return _COMPILED.get("failed")
-
-
-def _compiled() -> Callable:
-    """:func:`_energies_and_gradient` compiled once per process (dynamic shapes: one
-    compilation serves every batch size)."""
-    if "fn" not in _COMPILED:
-        _COMPILED["fn"] = torch.compile(_energies_and_gradient, dynamic=True)
-    return _COMPILED["fn"]
+    return _STEP.failure
 
 
 def energies_and_vector_gradient(
@@ -236,11 +227,4 @@ def energies_and_vector_gradient(
               float(painn.edge_eps), float(painn.message_norm))
     args = (painn_weights(painn), numbers, d.detach(), painn.rbf.centers.to(d.dtype), i, j,
             radial, float(painn.updates[0].norm_eps))
-    if compiled and "failed" not in _COMPILED:
-        try:
-            return _compiled()(*args)
-        except Exception as err:  # noqa: BLE001 (inductor raises many kinds; fall back)
-            _COMPILED["failed"] = repr(err)
-            log.warning("torch.compile of the PaiNN training step failed (%.200r); training"
-                        " goes on uncompiled", err)
-    return _energies_and_gradient(*args)
+    return _STEP(*args, compiled=compiled)

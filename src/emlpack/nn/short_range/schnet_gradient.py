@@ -35,13 +35,12 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
 
 import torch
 from torch import nn
 
 from emlpack.nn.scatter import convolve
-from emlpack.nn.short_range.common import LN2
+from emlpack.nn.short_range.common import LN2, CompiledOnce
 
 log = logging.getLogger(__name__)
 
@@ -157,21 +156,13 @@ def _energies_and_gradient(
     return energies, dedr
 
 
-_COMPILED: dict[str, Callable] = {}
+_STEP = CompiledOnce(_energies_and_gradient, "SchNet", log)
 
 
 def compile_failure() -> str | None:
-    """Why ``torch.compile`` of the training step failed in this process (None: it did not,
-    or was not tried)."""
-    return _COMPILED.get("failed")
-
-
-def _compiled() -> Callable:
-    """:func:`_energies_and_gradient` compiled once per process (dynamic shapes: one
-    compilation serves every batch size)."""
-    if "fn" not in _COMPILED:
-        _COMPILED["fn"] = torch.compile(_energies_and_gradient, dynamic=True)
-    return _COMPILED["fn"]
+    """Why ``torch.compile`` of the SchNet training step failed in this process (None: it did
+    not, or was not tried)."""
+    return _STEP.failure
 
 
 def energies_and_length_gradient(
@@ -191,11 +182,4 @@ def energies_and_length_gradient(
               schnet.cutoff_transition)
     args = (schnet_weights(schnet), numbers, r.detach(), schnet.rbf.centers.to(r.dtype), i, j,
             radial, float(schnet.message_norm))
-    if compiled and "failed" not in _COMPILED:
-        try:
-            return _compiled()(*args)
-        except Exception as err:  # noqa: BLE001 (inductor raises many kinds; fall back)
-            _COMPILED["failed"] = repr(err)
-            log.warning("torch.compile of the SchNet training step failed (%.200r); training"
-                        " goes on uncompiled", err)
-    return _energies_and_gradient(*args)
+    return _STEP(*args, compiled=compiled)
