@@ -19,7 +19,7 @@
 #                 turned into shards of datasets/beta-glycine every 25 min and committed)
 #   val-refs      the DFT polarizabilities of mini-eQM7's validation molecules
 #                 (examples/eqm7/validation_references.py; files committed every 25 min), on
-#                 bg-optimize's core once that has converged
+#                 the core beside bg-optimize
 #   raman-dft     the DFT Raman reference of aziridine (examples/raman/aziridine_dft.py, ~216
 #                 SCFs, ~15-40 min), after val-refs on the same core; committed when it ends
 #   bakeoff       issue 51's bake-off: each candidate recipe of examples/eqm7/bakeoff.yaml
@@ -188,19 +188,27 @@ start_pretrain() {  # start_pretrain WORKERS
 start_all() {
   start_bg_optimize
   start_level_choice
-  if ! running bg-optimize; then
+  # the brief's second stage (the equivariant family and the faster trainer exist): the chain
+  # val-refs -> raman-dft -> bakeoff -> alpha-labels takes one core beside bg-optimize; the
+  # pilot labels take the core that is left (none while both run)
+  if ! running level-choice; then
     start_val_refs
     running val-refs || start_raman_dft
     running val-refs || running raman-dft || running alpha-labels || start_bakeoff
     running val-refs || running raman-dft || running bakeoff || start_alpha_labels
   fi
   local free=$((2 - $(others)))
+  if running pretrain && [ "$free" -lt 1 ]; then stop_job pretrain; fi
   [ "$free" -ge 1 ] && start_pretrain "$free"
   return 0
 }
 
 watch_jobs() {  # every 5 minutes: start what is due (one more labeling process when a core frees)
   while sleep 300; do
+    if running pretrain && [ "$(others)" -ge 2 ]; then  # the other jobs take both cores
+      stop_job pretrain
+      while running pretrain; do sleep 10; done
+    fi
     if running pretrain && [ "$(cat "$PIDS/pretrain.workers" 2>/dev/null)" = 1 ] \
         && [ "$(others)" = 0 ] && val_refs_done && [ -f "$RAMAN_JSON" ] && bakeoff_done \
         && alpha_labels_done; then
