@@ -9,6 +9,7 @@ failures recorded in the store. Skipped without CP2K on a user's machine, failin
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 
@@ -319,3 +320,24 @@ def test_repeated_structure():
         s.repeated((0, 1, 1))
     with pytest.raises(StructureError, match="periodic"):
         s.copy(pbc=False, cell=np.zeros((3, 3))).repeated((2, 1, 1))
+
+
+def test_wavefunction_guess_starts_from_a_kept_wavefunction(cp2k, tmp_path):
+    """``CP2KSettings.wavefunction_guess``: a labeler without reuse starts from the given
+    ``.wfn`` (the one :meth:`CP2KLabeler.wavefunction` kept) in far fewer SCF steps, with the
+    same labels as from the atomic guess; a missing file is one clear error."""
+    reuse = CP2KLabeler(CP2KSettings(**{**FAST.to_dict(), "reuse_wavefunction": True}))
+    assert reuse.wavefunction(water()) is None
+    reuse(water())
+    kept = tmp_path / "water.wfn"
+    shutil.copyfile(reuse.wavefunction(water()), kept)
+    moved = water(positions=water().positions + [[0, 0, 0], [0.03, -0.02, 0], [0, 0, 0]])
+    cold = CP2KLabeler(FAST)(moved)
+    warm = CP2KLabeler(CP2KSettings(**{**FAST.to_dict(), "wavefunction_guess": str(kept)}))(moved)
+    assert warm.info["scf_steps"] < cold.info["scf_steps"] / 2, (cold.info, warm.info)
+    assert warm.energy == pytest.approx(cold.energy, abs=1e-4)
+    np.testing.assert_allclose(warm.forces, cold.forces, atol=2e-3)
+    missing = CP2KLabeler(CP2KSettings(**{**FAST.to_dict(),
+                                          "wavefunction_guess": str(tmp_path / "none.wfn")}))
+    with pytest.raises(CP2KInputError, match="wavefunction_guess"):
+        missing(moved)

@@ -54,6 +54,11 @@ class CP2KSettings:
             composition (same labeler; in :func:`label_task` the same worker process) instead of
             the atomic guess: fewer SCF steps for similar configurations, same result within
             the SCF tolerance.
+        wavefunction_guess: a CP2K ``.wfn`` file of the same (super)cell composition to start
+            the SCF from whenever no kept wavefunction applies (``reuse_wavefunction`` off, or
+            the first point of a composition), e.g. the DFT optimum's
+            (:meth:`CP2KLabeler.wavefunction`): a campaign's samples are displacements around
+            it. None: the atomic guess.
         supercell: run CP2K on the structure repeated this many times along its cell vectors
             (Γ point of the supercell = a Γ-centred k-point mesh of the cell, for every label:
             the Berry-phase field and the Wannier localisation need the Γ point only); the
@@ -80,6 +85,7 @@ class CP2KSettings:
     max_localization_iter: int = 10000
     wannier: bool = True
     reuse_wavefunction: bool = False
+    wavefunction_guess: str | None = None
     supercell: tuple[int, int, int] = (1, 1, 1)
     n_processes: int = 2
     omp_threads: int = 1

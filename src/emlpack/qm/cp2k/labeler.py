@@ -120,6 +120,10 @@ class CP2KLabeler:
         run_on = structure if cells == 1 else structure.repeated(reps)
         composition = np.append(run_on.numbers, run_on.charge).tobytes()
         guess = self._wfn.get(composition) if s.reuse_wavefunction else None
+        if guess is None and s.wavefunction_guess is not None:
+            guess = Path(s.wavefunction_guess).resolve()
+            if not guess.is_file():
+                raise CP2KInputError(f"{where}: wavefunction_guess {guess} is not a file")
         text = build_input(run_on, s, stress, data_dir=data_dir, guess=guess)
         n_val = core_charges(run_on.numbers).sum() - run_on.charge
         if self.workdir is not None:
@@ -177,6 +181,15 @@ class CP2KLabeler:
             pair_forces=np.zeros((len(pairs) if s.wannier else structure.n_pairs, 3)),
             stress=stress_ev, info=info, source=structure.source,
         )
+
+    def wavefunction(self, structure: Structure) -> Path | None:
+        """The kept wavefunction (``.wfn``) of ``structure``'s composition (its supercell's,
+        with ``supercell``), from the last converged run of this labeler with
+        ``reuse_wavefunction``; None if there is none. Copy it to keep it: the file lives in
+        the labeler's scratch folder and goes with the labeler."""
+        reps = tuple(int(n) for n in self.settings.supercell)
+        run_on = structure if int(np.prod(reps)) == 1 else structure.repeated(reps)
+        return self._wfn.get(np.append(run_on.numbers, run_on.charge).tobytes())
 
     def _keep_wavefunction(self, wfn: Path, composition: bytes) -> None:
         if not wfn.exists():
