@@ -123,6 +123,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--config", default=str(HERE / "config.yaml"))
     p.add_argument("--structure", default=None,
                    help="extxyz of the optimum (default: WORKDIR/optimized.xyz of the config)")
+    p.add_argument("--out", default=str(HERE / "settings_check.json"), help="the table (JSON)")
     p.add_argument("--only", nargs="+", choices=list(CANDIDATES), default=list(CANDIDATES))
     args = p.parse_args(argv)
     cfg = yaml.safe_load(Path(args.config).read_text())
@@ -153,7 +154,7 @@ def main(argv: list[str] | None = None) -> None:
         row["cost_ratio"] = r["cpu_s"] / results["config"]["cpu_s"]
         row.update(compare(ref, r["labels"]))
         table["settings"][name] = row
-    target = HERE / "settings_check.json"
+    target = Path(args.out)
     tmp = target.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(table, indent=1) + "\n")
     tmp.replace(target)

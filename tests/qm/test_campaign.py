@@ -303,7 +303,8 @@ def test_campaign_init_refuses_to_overwrite(tmp_path):
 def test_pretraining_selection_leaves_out_every_held_out_graph(tmp_path):
     """A pretraining set lists every allowed QM7 molecule but rows 0-9, the IR molecules and
     mini-eQM7's validation and test molecules, by molecular graph; its card names the cheap
-    level as not the paper's, and its order is the seeded random list."""
+    level as not the paper's, and its order is the seeded random list with the splits
+    interleaved."""
     path = shared_path("data/qm7_smiles.csv")
     folder = tmp_path / "qm7-cheap"
     mols = campaign.init_campaign(folder, path, seed=0, level="pbe0/def2-svpd/grid1",
@@ -324,8 +325,16 @@ def test_pretraining_selection_leaves_out_every_held_out_graph(tmp_path):
     assert {m["split"] for m in mols} == {"train", "val"}
     settings = campaign.load_settings(folder)
     assert settings["recipe"]["level"] == "pbe0/def2-svpd/grid1"
-    order, target = campaign.campaign_target(folder)
-    assert [m["name"] for m in order[:5]] == [m["name"] for m in mols[:5]]
+    prefix, target = campaign.campaign_target(folder)
+    order = campaign.campaign_order(settings, mols)
+    assert [m["name"] for m in prefix] == [m["name"] for m in order[:len(prefix)]]
+    assert sorted(m["name"] for m in order) == sorted(m["name"] for m in mols)
+    for split in ("train", "val"):  # each split in the list's order, at its share of a prefix
+        assert [m["name"] for m in order if m["split"] == split] == [
+            m["name"] for m in mols if m["split"] == split]
+    share = sum(m["split"] == "val" for m in mols) / len(mols)
+    for n in (20, 100, 1000):
+        assert abs(sum(m["split"] == "val" for m in order[:n]) - share * n) <= 1
     assert target["prefix"] == 10 and not target["reached"]
     card = (folder / "README.md").read_text()
     assert "not the paper's level" in card and "pbe0/def2-svpd/grid1" in card

@@ -183,8 +183,8 @@ def select_all_molecules(csv_path: str | Path, exclude: list[str | Path] = (), s
     """A pretraining set's molecule list: every sulfur-free closed-shell molecule of the CSV
     except rows 0-9 (:data:`EXCLUDED_ROWS`), the IR test molecules and the validation and test
     molecules of the campaigns in ``exclude`` (by molecular graph, :func:`graph_key`), in a
-    seeded random order (so any prefix is a sample of the whole set), split by molecule into
-    ``fractions`` (train, val, test).
+    seeded random order, split by molecule into ``fractions`` (train, val, test) by position
+    in that order (:func:`campaign_order` interleaves the splits for labeling).
 
     Returns dicts as :func:`select_molecules` (``name`` ``qm7-ROW``, ``source``, ``smiles``,
     ``n_heavy``, ``split``, ``canonical``).
@@ -240,11 +240,30 @@ def labeling_order(molecules: list[dict]) -> list[dict]:
     return sorted(molecules, key=key)  # stable: the list's order within each group
 
 
+def interleaved_order(molecules: list[dict]) -> list[dict]:
+    """The molecules with each split spread evenly over the order: the k-th of a split's n
+    molecules (in list order) at the quantile (k + 1/2) / n, ties by the list's order.
+
+    A pretraining set's list is shuffled and then split by position (its validation molecules
+    are the list's first 5 %): in list order a pilot's first shards would hold validation
+    molecules only. Interleaved, every prefix holds each split at its share."""
+    by_split: dict[str, list[int]] = {}
+    for index, m in enumerate(molecules):
+        by_split.setdefault(m["split"], []).append(index)
+    rank = {}
+    for indices in by_split.values():
+        for k, index in enumerate(indices):
+            rank[index] = ((k + 0.5) / len(indices), index)
+    return [molecules[i] for i in sorted(range(len(molecules)), key=rank.__getitem__)]
+
+
 def campaign_order(settings: dict, molecules: list[dict]) -> list[dict]:
-    """The labeling order of a campaign: a pretraining set (``selection: all``) keeps its
-    list's seeded random order (every prefix a sample of the whole, validation included);
-    otherwise :func:`labeling_order`."""
-    return list(molecules) if settings.get("selection") == "all" else labeling_order(molecules)
+    """The labeling order of a campaign: a pretraining set (``selection: all``) takes its
+    list's seeded random order with the splits interleaved (:func:`interleaved_order`: every
+    prefix a sample of the whole, each split at its share); otherwise :func:`labeling_order`."""
+    if settings.get("selection") == "all":
+        return interleaved_order(molecules)
+    return labeling_order(molecules)
 
 
 def samples_per_molecule(recipe: dict) -> int:
@@ -614,8 +633,9 @@ def order_lines(settings: dict, n_split: dict, test: list[str]) -> list[str]:
         return [f"- molecules: every sulfur-free closed-shell molecule of the source except"
                 f" rows 0-9, the IR test molecules and the validation and test molecules of"
                 f" {exclude}, compared by molecular graph (canonical SMILES without stereo),"
-                f" in a random order drawn with seed {settings['seed']} and labeled in that"
-                " order (any prefix is a sample of the whole);", counts + ";"]
+                f" in a random order drawn with seed {settings['seed']}, labeled in that"
+                " order with the splits interleaved at their shares (any prefix is a sample of"
+                " the whole);", counts + ";"]
     return ["- order: every molecule with 2-5 heavy atoms, then the IR test molecules missing"
             f" from the source, then {settings['n_large']} molecules with 6-7 heavy atoms drawn"
             f" with seed {settings['seed']}; labeled in this order, except that the validation"
