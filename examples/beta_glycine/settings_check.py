@@ -39,6 +39,8 @@ OUT = Path("runs/bg_settings")
 #: the cheaper settings, each a change of the config's cp2k section
 CANDIDATES: dict[str, dict] = {
     "config": {},
+    "eps-scf-1e-7": {"eps_scf": 1e-7},  # tighter: the config's own SCF error
+    "cutoff-500": {"cutoff_ry": 500.0},  # tighter: the config's own grid error
     "cutoff-350": {"cutoff_ry": 350.0},
     "cutoff-300": {"cutoff_ry": 300.0},
     "cutoff-300-rel-40": {"cutoff_ry": 300.0, "rel_cutoff_ry": 40.0},
@@ -107,10 +109,13 @@ def run_candidate(name: str, st: CP2KSettings, sample: Structure, wfn: Path) -> 
 
 def compare(ref: Structure, other: Structure) -> dict:
     """Label differences (other - ref): energy per atom (meV), forces (meV/Å), stress (GPa),
-    Wannier centres (Å, matched by index: the same localisation from the same guess)."""
+    Wannier centres (Å, matched by index: the same localisation from the same guess); and
+    ``other``'s net force |sum F| (eV/Å: zero in exact arithmetic, a measure of its numerical
+    force error)."""
     df = 1e3 * np.abs(other.forces - ref.forces)
     dc = np.linalg.norm(other.pairs - ref.pairs, axis=1) if other.n_pairs == ref.n_pairs else None
     return {
+        "net_force_eV_per_A": float(np.linalg.norm(other.forces.sum(axis=0))),
         "energy_meV_per_atom": 1e3 * (other.energy - ref.energy) / ref.n_cores,
         "forces_mae_meV_per_A": float(df.mean()), "forces_max_meV_per_A": float(df.max()),
         "stress_max_GPa": float(np.abs(other.stress - ref.stress).max() * EV_PER_A3_IN_GPA),
