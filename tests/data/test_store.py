@@ -258,3 +258,29 @@ def test_polarizability_label_round_trip_and_stores_without_the_column(tmp_path)
         assert [s.polarizability is None for s in st] == [True, True, False]
         np.testing.assert_array_equal(st[2].polarizability, alpha)
         assert st.metadata["unit_polarizability"] == "e*angstrom^2/V"
+
+
+def test_a_frozen_shard_list_reads_those_shards_and_counts_them_without_labels(tmp_path):
+    """``read_shards(folder, shards)`` reads the named shards only (a growing set's frozen
+    list), ``shard_counts`` gives their configurations and molecules from the text columns
+    (hydride references left out), and a named shard that is not there is one error naming
+    it."""
+    from emlpack.data.shards import read_shards, shard_counts
+    from tests.examples.eqm7_data import PER_MOLECULE, tiny_dataset
+
+    folder = tiny_dataset(tmp_path / "set", shards=2)
+    first = read_shards(folder, ["0000.h5"])
+    assert [p.name for p in first.shards] == ["0000.h5"] and first.hydrides is not None
+    assert len(first.structures) == 3 * PER_MOLECULE
+    assert shard_counts(folder, ["0000.h5"]) == {"shards": ["0000.h5"],
+                                                 "configurations": 3 * PER_MOLECULE,
+                                                 "molecules": 3}
+    counts = shard_counts(folder)
+    assert counts["configurations"] == len(read_shards(folder).structures) == 6 * PER_MOLECULE
+    assert counts["shards"] == ["0000.h5", "0001.h5"] and counts["molecules"] == 6
+    with DatasetStore(folder / "shards" / "0000.h5") as store:
+        assert store.text_column("kind").count("hydride") == 4
+        with pytest.raises(StoreError, match="no text column 'energy'"):
+            store.text_column("energy")
+    with pytest.raises(StoreError, match=r"no shard\(s\) 0007.h5 in shards/"):
+        read_shards(folder, ["0000.h5", "0007.h5"])

@@ -34,11 +34,18 @@ def study_module() -> ModuleType:
     return example_module("run_study")
 
 
-def tiny_dataset(folder, shards: int = 1):
+#: the paper's level, as the shared subset's labels are
+PAPER_LEVEL = "pbe0/aug-cc-pvtz"
+
+
+def tiny_dataset(folder, shards: int = 1, level: str = PAPER_LEVEL,
+                 shift: dict[int, float] | None = None):
     """A data-set folder in the campaign's layout (molecules.csv, shards/NNNN.h5 with the
     hydride references in the first), 8 configurations of each molecule of the shared PBE0
     subset; ``shards=2``: the first three molecules (test, train, validation) in shard 0000,
-    the other three (training) in 0001."""
+    the other three (training) in 0001. ``level``: the level the records name; ``shift``:
+    eV per atom of each element added to every energy, hydrides included (a stand-in for
+    another level's labels: the hydride reference then differs, the relative energies not)."""
     frames = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"))
     folder.mkdir()
     (folder / "shards").mkdir()
@@ -47,19 +54,23 @@ def tiny_dataset(folder, shards: int = 1):
         w.writerow(["name", "source", "smiles", "n_heavy", "split"])
         for name, smiles, n_heavy, split in MOLECULES:
             w.writerow([name, "eqm7_pbe0_subset", smiles, n_heavy, split])
+    def offset(numbers) -> float:
+        return float(sum((shift or {}).get(int(z), 0.0) for z in numbers))
+
     per_shard: list[list] = [[] for _ in range(shards)]
     for m, (name, *_rest) in enumerate(MOLECULES):
         for k in range(PER_MOLECULE):
             s = frames[100 * m + 7 * k]
-            per_shard[min(m * shards // len(MOLECULES), shards - 1)].append(s.copy(info={
-                "key": f"{name}/nms/{k:04d}", "molecule_id": name, "kind": "nms",
-                "level": "pbe0/aug-cc-pvtz"}))
+            per_shard[min(m * shards // len(MOLECULES), shards - 1)].append(s.copy(
+                energy=s.energy + offset(s.numbers),
+                info={"key": f"{name}/nms/{k:04d}", "molecule_id": name, "kind": "nms",
+                      "level": level}))
     hydrides, energies = load_hydrides(shared_path("data/hydrides"))
     for h, e in zip(hydrides, energies, strict=True):
         name = h.info["molecule_id"]
-        per_shard[0].append(h.copy(energy=float(e), info={
+        per_shard[0].append(h.copy(energy=float(e) + offset(h.numbers), info={
             "key": f"hydride/{name}", "molecule_id": name, "kind": "hydride",
-            "level": "pbe0/aug-cc-pvtz"}))
+            "level": level}))
     for n, records in enumerate(per_shard):
         with DatasetStore(folder / "shards" / f"{n:04d}.h5", "a") as store:
             store.append(records)

@@ -464,6 +464,101 @@ def test_pretrain_then_fine_tune_records_the_lineage(tmp_path, small_data):
                           [f"training.init_weights={pre}", "training.freeze=[nothing]"]))
 
 
+#: a stand-in for a cheap level's labels: eV per atom added to every energy, hydrides included
+CHEAP_SHIFT = {1: 0.21, 6: -1.3, 7: 0.8, 8: -0.45}
+
+
+def test_emlp_train_pretrains_on_a_cheap_set_and_fine_tunes_at_the_papers_level(
+        tmp_path, capsys, monkeypatch):
+    """``emlp train`` end to end on two data-set folders: a pretraining on a cheap-level set
+    (its own hydride references at that level; a frozen shard list, so the run resumes while
+    the set grows) and a fine-tune from its best.pt on a paper-level set (that set's hydride
+    reference, fresh counters, a lower learning rate, a frozen embedding). The fine-tune's
+    checkpoint records both stages (levels, shards, references); exported, the model card and
+    ``emlp pretrained NAME`` show the lineage once. A shard that is not there is one line."""
+    import shutil
+
+    from emlpack import pretrained
+    from emlpack.cli import main
+    from emlpack.data.shards import read_shards
+    from emlpack.pretrained import export_pretrained
+    from tests.cli.helpers import run
+    from tests.examples.eqm7_data import tiny_dataset
+
+    cheap = tiny_dataset(tmp_path / "cheap", shards=2, level="pbe0/def2-svpd/grid1",
+                         shift=CHEAP_SHIFT)
+    paper = tiny_dataset(tmp_path / "paper")
+    cfg = {k: dict(v) for k, v in TINY.items()}
+    cfg["data"] = {"reference": "hydrides", "split": "auto"}
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    later = (cheap / "shards" / "0001.h5").rename(tmp_path / "0001.h5")  # not labeled yet
+    pre, tuned = tmp_path / "pre", tmp_path / "tuned"
+    argv = ["train", str(path), f"data.path={cheap}", "data.shards=[0000.h5]",
+            f"output.dir={pre}", "training.max_epochs=1"]
+    rc, out, err = run(argv)
+    assert rc == 0, err + out
+    later.rename(cheap / "shards" / "0001.h5")  # the set grew; the run reads its own shards
+    rc, out, err = run([*argv[:-1], "training.max_epochs=2"])
+    assert rc == 0 and "resumed from" in out, err + out
+    meta = read_checkpoint(pre / "best.pt")["metadata"]
+    cheap_hydrides = read_shards(cheap).hydrides["energies"]
+    assert meta["reference"]["energies"] == pytest.approx(cheap_hydrides)
+    assert meta["n_structures"] == 24  # the 3 molecules of shard 0000, not the later shards
+    names = [n for n, _ in load_model(pre / "best.pt").named_parameters()]
+    embedding = next(n for n in names if n.endswith("embedding.weight"))[: -len(".weight")]
+    rc, out, err = run(["train", str(path), f"data.path={paper}", f"output.dir={tuned}",
+                        f"training.init_weights={pre / 'best.pt'}", "training.lr=2e-3",
+                        f"training.freeze=[{embedding}]", "training.max_epochs=1"])
+    assert rc == 0 and f"weights from {pre / 'best.pt'}" in out, err + out
+    ckpt = read_checkpoint(tuned / "best.pt")
+    meta = ckpt["metadata"]
+    paper_hydrides = read_shards(paper).hydrides["energies"]
+    assert meta["reference"]["energies"] == pytest.approx(paper_hydrides)
+    assert not np.allclose(paper_hydrides, cheap_hydrides)
+    assert meta["epoch"] == 1 and meta["config"]["training"]["lr"] == 2e-3
+    lineage = meta["lineage"]
+    assert [s["levels"] for s in lineage] == [["pbe0/def2-svpd/grid1"], ["pbe0/aug-cc-pvtz"]]
+    assert [s["data_path"] for s in lineage] == [str(cheap), str(paper)]
+    assert [s["shards"] for s in lineage] == [["0000.h5"], None]
+    assert [s["reference"] for s in lineage] == ["hydrides", "hydrides"]
+    assert lineage[0]["epoch"] == 2 and lineage[1]["init_weights"] == str(pre / "best.pt")
+    assert torch.equal(ckpt["state_dict"][f"{embedding}.weight"],
+                       read_checkpoint(pre / "best.pt")["state_dict"][f"{embedding}.weight"])
+    # shipped: the card and `emlp pretrained NAME` show the lineage, once
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "shipped")
+    export_pretrained([tuned / "best.pt"], tmp_path / "shipped" / "toy", "# toy\n")
+    capsys.readouterr()
+    assert main(["pretrained", "toy"]) == 0
+    shown = capsys.readouterr().out
+    assert shown.count("## Lineage") == 1 and shown.count("stage 1: trained on") == 1
+    stage1 = next(line for line in shown.splitlines() if "stage 1:" in line)
+    assert "shard 0000.h5" in stage1 and "pbe0/def2-svpd/grid1" in stage1
+    stage2 = next(line for line in shown.splitlines() if "stage 2:" in line)
+    assert "fine-tuned" in stage2 and "pbe0/aug-cc-pvtz" in stage2 and embedding in stage2
+    shutil.rmtree(pre)
+    rc, out, err = run([*argv[:3], "data.shards=[0000.h5, 0009.h5]", *argv[4:]])
+    assert rc == 2 and len(err.strip().splitlines()) == 1, err + out
+    assert "no shard(s) 0009.h5" in err
+    rc, _, err = run([*argv[:3], "data.shards=0000.h5", *argv[4:]])
+    assert rc == 2 and "data.shards must be null or a non-empty list" in err
+
+
+def test_a_run_saved_before_a_data_key_existed_resumes(tmp_path, small_data):
+    """A last.pt whose saved ``data`` section lacks a key added to the config since (here
+    ``data.shards``) resumes: the missing key counts as its default."""
+    from emlpack.nn.checkpoint import save_model
+
+    cfg = load_config(_config(tmp_path, small_data, "old"), ["training.max_epochs=1"])
+    train(cfg)
+    last = tmp_path / "old" / "last.pt"
+    payload = read_checkpoint(last)
+    payload["metadata"]["config"]["data"].pop("shards")
+    save_model(load_model(last), last, payload["metadata"])
+    train(load_config(_config(tmp_path, small_data, "old"), ["training.max_epochs=2"]))
+    assert [r["epoch"] for r in _log(tmp_path / "old")] == ["1", "2"]
+
+
 def test_the_step_differentiates_every_parameter_and_nothing_else(tmp_path, small_data):
     """``Trainer._train_epoch`` differentiates the loss with respect to the optimizer's
     parameters only (``backward(inputs=...)``, which skips the positions' second derivatives):

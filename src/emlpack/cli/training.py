@@ -151,10 +151,11 @@ def add_pretrained(sub: Subparsers) -> None:
                 f" {', '.join(available()) or 'none'}; 'emlp pretrained' lists them)")
         from emlpack.calculators.ensemble import load_pretrained
 
-        print(model_card(args.name))
+        card = model_card(args.name)
+        print(card)
         ensemble = load_pretrained(args.name)
         from emlpack.nn.checkpoint import read_checkpoint
-        from emlpack.pretrained import lineage_lines
+        from emlpack.pretrained import LINEAGE_HEADING, lineage_lines
 
         lineages = []
         for m in ensemble.members:
@@ -162,9 +163,10 @@ def add_pretrained(sub: Subparsers) -> None:
             lineage = (read_checkpoint(m.source).get("metadata") or {}).get("lineage")
             if lineage not in lineages:
                 lineages.append(lineage)
-        for lineage in lineages:  # the members' lineages, each once
-            for line in lineage_lines(lineage):
-                print(line)
+        if LINEAGE_HEADING not in card:  # the card shows it already when exported with it
+            for lineage in lineages:  # the members' lineages, each once
+                for line in lineage_lines(lineage):
+                    print(line)
         t = ensemble.spread_thresholds
         print(f"spread warnings above {t.energy:.4g} eV/atom (energy), {t.forces:.4g} eV/Å"
               f" (largest force component): {t.basis}")

@@ -23,11 +23,15 @@ import csv
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from emlpack.data.store import DatasetStore, StoreError
 from emlpack.structure import Structure
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 #: the hydride references, in the order the trainer expects them
 HYDRIDE_NAMES = ("H2", "CH4", "NH3", "H2O")
@@ -102,8 +106,44 @@ def shard_paths(folder: str | Path) -> list[Path]:
     return sorted((Path(folder) / SHARD_DIR).glob("[0-9][0-9][0-9][0-9].h5"))
 
 
-def read_shards(folder: str | Path) -> ShardedData:
-    """Every shard of ``folder`` as one data set with the card's split (missing shards: none)."""
+def chosen_shards(folder: str | Path, shards: Sequence[str] | None = None) -> list[Path]:
+    """The shard files of ``folder``: all of them (None), or those named in ``shards`` (file
+    names such as ``0003.h5``, in shard order; a frozen list, e.g. of a training on a set that
+    is still growing). A named shard that is not there raises :class:`StoreError`."""
+    paths = shard_paths(folder)
+    if shards is None:
+        return paths
+    by_name = {p.name: p for p in paths}
+    missing = sorted(set(shards) - set(by_name))
+    if missing:
+        raise StoreError(f"{folder}: no shard(s) {', '.join(missing)} in {SHARD_DIR}/ (it holds"
+                         f" {len(paths)}: {paths[0].name if paths else 'none'}"
+                         f"{'..' + paths[-1].name if len(paths) > 1 else ''})")
+    wanted = set(shards)
+    return [p for p in paths if p.name in wanted]
+
+
+def shard_counts(folder: str | Path, shards: Sequence[str] | None = None) -> dict:
+    """What the shards of ``folder`` (all, or those named, :func:`chosen_shards`) hold, read
+    from their record columns only (no labels loaded): ``shards`` (file names),
+    ``configurations`` (labeled configurations, hydride references excluded) and
+    ``molecules`` (distinct molecules among them)."""
+    paths = chosen_shards(folder, shards)
+    n, molecules = 0, set()
+    for path in paths:
+        with DatasetStore(path, "r") as store:
+            for kind, name in zip(store.text_column("kind"), store.text_column("molecule_id"),
+                                  strict=True):
+                if kind != "hydride":
+                    n += 1
+                    molecules.add(name)
+    return {"shards": [p.name for p in paths], "configurations": n,
+            "molecules": len(molecules)}
+
+
+def read_shards(folder: str | Path, shards: Sequence[str] | None = None) -> ShardedData:
+    """Every shard of ``folder`` (or the shards named in ``shards``, :func:`chosen_shards`) as
+    one data set with the card's split (missing shards: none)."""
     molecules = read_molecule_table(folder)
     split_of = {m["name"]: m["split"] for m in molecules}
     structures: list[Structure] = []
@@ -112,7 +152,7 @@ def read_shards(folder: str | Path) -> ShardedData:
     hyd: dict[str, Structure] = {}
     metadata = []
     seen: dict[str, Path] = {}
-    paths = shard_paths(folder)
+    paths = chosen_shards(folder, shards)
     for path in paths:
         with DatasetStore(path, "r") as store:
             metadata.append(store.metadata)

@@ -275,7 +275,14 @@ class DatasetStore:
 
     def keys(self) -> list[str]:
         """Keys of the committed records, in order."""
-        return [_text(k) for k in self.file["records/key"][: len(self)]]
+        return self.text_column("key")
+
+    def text_column(self, name: str) -> list[str]:
+        """One text column (``molecule_id``, ``kind``, ``level`` or ``key``) of the committed
+        records, in order, without reading their arrays."""
+        if name not in _REC_STR:
+            raise StoreError(f"{self.path}: no text column {name!r} (known: {_REC_STR})")
+        return [_text(k) for k in self.file[f"records/{name}"][: len(self)]]
 
     def failures(self) -> list[dict]:
         """Recorded failures: dicts with key, molecule_id, kind and reason."""

@@ -93,11 +93,31 @@ def lineage_lines(lineage: list[dict] | None) -> list[str]:
         what = "trained" if k == 0 and not s.get("init_weights") else "fine-tuned"
         frozen = f", frozen {', '.join(s['freeze'])}" if s.get("freeze") else ""
         steps = "" if s.get("step") is None else f", {s['step']} steps"
-        out.append(f"stage {k + 1}: {what} on {s.get('data_path')} ({s.get('n_train')} training"
+        shards = s.get("shards")
+        part = (f" shards {shards[0]}-{shards[-1]} ({len(shards)})" if shards and len(shards) > 1
+                else f" shard {shards[0]}" if shards else "")
+        out.append(f"stage {k + 1}: {what} on {s.get('data_path')}{part} ({s.get('n_train')}"
+                   " training"
                    f" configurations, level {', '.join(s.get('levels') or ['unknown'])},"
                    f" reference {s.get('reference', 'unknown')}), {s.get('epoch')} epochs"
                    f"{steps}{frozen}")
     return out
+
+
+#: the heading of the lineage section that :func:`export_pretrained` adds to a card
+LINEAGE_HEADING = "## Lineage"
+
+
+def lineage_section(lineages: list[list[dict] | None]) -> list[str]:
+    """The model card's lineage section (Markdown lines) from the members' lineages: each
+    member's stages (:func:`lineage_lines`), e.g. pretrained at a cheap level, then
+    fine-tuned at the paper's."""
+    lines = [LINEAGE_HEADING, "",
+             "What each member was trained on, stage by stage (from its checkpoint's"
+             " `lineage`):", ""]
+    for k, lineage in enumerate(lineages):
+        lines += [f"- member {k}:", *(f"  - {line}" for line in lineage_lines(lineage))]
+    return [*lines, ""]
 
 
 def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: str,
@@ -113,9 +133,10 @@ def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: s
     training domain (:func:`emlpack.data.dataset.training_domain`) for checkpoints whose
     metadata lacks it (written before it was recorded); ``spread_calibration``: the
     ensemble's spread thresholds (:func:`emlpack.calculators.calibration.calibrate_spread`
-    of these checkpoints at ``dtype``), stored in every member. The folder's earlier
-    members are replaced: a ``model-K.pt`` beyond the new ensemble's size is removed. Returns
-    the written files."""
+    of these checkpoints at ``dtype``), stored in every member. The card gets the members'
+    lineage (:func:`lineage_section`) at its end when their checkpoints record one and the
+    card has no such section. The folder's earlier members are replaced: a ``model-K.pt``
+    beyond the new ensemble's size is removed. Returns the written files."""
     import torch
 
     from emlpack.nn.checkpoint import load_model, read_checkpoint, save_model
@@ -126,9 +147,10 @@ def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: s
     folder.mkdir(parents=True, exist_ok=True)
     keep = ("reference", "elements", "max_heavy_atoms", "data_path", "split", "epoch", "val",
             "lineage")
-    written = []
+    written, lineages = [], []
     for k, path in enumerate(checkpoints):
         meta = read_checkpoint(path).get("metadata", {}) or {}
+        lineages.append(meta.get("lineage"))
         if "reference" not in meta:
             raise PretrainedError(f"{path}: no training reference in the metadata (not a"
                                   " checkpoint written by `emlp train`)")
@@ -146,6 +168,8 @@ def export_pretrained(checkpoints: list[str | Path], folder: str | Path, card: s
         written.append(save_model(model, folder / f"model-{k}.pt", out))
     for stale in set(folder.glob("model-*.pt")) - set(written):
         stale.unlink()  # a member of a larger earlier ensemble
+    if any(lineages) and LINEAGE_HEADING not in card:
+        card = card.rstrip("\n") + "\n\n" + "\n".join(lineage_section(lineages))
     card_path = folder / "card.md"
     write_text_atomic(card_path, card)
     return [*written, card_path]

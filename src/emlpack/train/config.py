@@ -40,6 +40,10 @@ log = logging.getLogger(__name__)
 DEFAULTS: dict = {
     "data": {
         "path": None,  # extxyz file, HDF5 store (.h5) or data-set folder of shards
+        # a data-set folder's shards to read (file names, e.g. [0000.h5, 0001.h5]): a list
+        # frozen when a run starts on a set that is still growing (its resume needs the same
+        # data); None: every shard
+        "shards": None,
         "hydrides": None,  # folder with H2.xyz, CH4.xyz, ... and energies_*_hartree.txt
         "reference": "auto",  # auto | hydrides | constant
         "split": "auto",  # auto (card of a data-set folder, else molecule) | molecule |
@@ -230,15 +234,20 @@ def resolve_model_section(
 
 
 def validate(cfg: dict) -> None:
-    """Refuse (:class:`ConfigError`) an unknown split or reference, a dtype other than float32 or
-    float64, a batch size, epoch limit or patience that is not a positive integer, a negative
-    learning rate, an Adam epsilon, decay period or time limit that is not a positive number, a
-    decay factor outside (0, 1], a negative loss weight, a device PyTorch cannot use, and a bad
-    model section."""
+    """Refuse (:class:`ConfigError`) an unknown split or reference, a shard list that is not a
+    list of names, a dtype other than float32 or float64, a batch size, epoch limit or
+    patience that is not a positive integer, a negative learning rate, an Adam epsilon, decay
+    period or time limit that is not a positive number, a decay factor outside (0, 1], a
+    negative loss weight, a device PyTorch cannot use, and a bad model section."""
     d, t = cfg["data"], cfg["training"]
     if d["split"] not in ("auto", "molecule", "configuration", "card"):
         raise ConfigError(f"data.split must be auto, molecule, configuration or card, got"
                           f" {d['split']!r}")
+    shards = d.get("shards")
+    if shards is not None and not (isinstance(shards, list) and shards and all(
+            isinstance(x, str) and x for x in shards)):
+        raise ConfigError(f"data.shards must be null or a non-empty list of shard file names"
+                          f" (e.g. [0000.h5, 0001.h5]), got {shards!r}")
     if d["reference"] not in ("auto", "hydrides", "constant"):
         raise ConfigError(f"data.reference must be auto, hydrides or constant, got"
                           f" {d['reference']!r}")

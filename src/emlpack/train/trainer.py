@@ -73,7 +73,7 @@ from emlpack.interrupts import terminate_as_interrupt
 from emlpack.nn.checkpoint import read_checkpoint, save_model
 from emlpack.nn.potential import EMLP, ModelConfig
 from emlpack.optional import import_optional
-from emlpack.train.config import ConfigError, dump_config, training_device
+from emlpack.train.config import DEFAULTS, ConfigError, dump_config, training_device
 from emlpack.train.loss import (
     LossWeights,
     Metrics,
@@ -152,8 +152,10 @@ class Trainer:
         sharded = is_sharded(d["path"])
         if d["split"] == "card" and not sharded:
             raise ValueError(f"{d['path']}: data.split=card needs a data-set folder with a card")
+        if d.get("shards") is not None and not sharded:
+            raise ConfigError(f"{d['path']}: data.shards needs a data-set folder of shards")
         if sharded:
-            shards = read_shards(d["path"])
+            shards = read_shards(d["path"], d.get("shards"))  # a missing shard: StoreError
             self.structures, store_hydrides = shards.structures, shards.hydrides
         else:
             self.structures, store_hydrides = load_data(d["path"])
@@ -266,12 +268,16 @@ class Trainer:
         return out
 
     def stage(self) -> dict:
-        """This run as a lineage entry: data, its levels of theory, size, the starting
+        """This run as a lineage entry: data (path, the shards read when ``data.shards`` names
+        them, configurations), its levels of theory, training size, reference, the starting
         checkpoint, frozen parameters, epoch and step."""
         levels = sorted({str(self.structures[int(i)].info.get("level", "")) or "unknown"
                          for i in self.split["train"]})
         t = self.cfg["training"]
+        shards = self.cfg["data"].get("shards")
         return {"data_path": str(self.cfg["data"]["path"]), "levels": levels,
+                "shards": list(shards) if shards is not None else None,
+                "n_structures": len(self.structures),
                 "n_train": int(len(self.split["train"])), "reference": self.reference.kind,
                 "init_weights": str(t["init_weights"]) if t["init_weights"] else None,
                 "freeze": list(t.get("freeze") or []), "epoch": self.epoch, "step": self.step}
@@ -340,10 +346,14 @@ class Trainer:
         torch.set_rng_state(state["torch_rng"])
 
     def _same_section(self, section: str, saved: dict | None) -> bool:
-        """Whether the config ``section`` saved in a checkpoint equals this run's; ``model``
+        """Whether the config ``section`` saved in a checkpoint equals this run's (a key the
+        saved one lacks, added to the config since, counts as its default); ``model``
         compared normalised (:meth:`ModelConfig.from_dict`: a run started before the
         short-range families saved the version-1 flat spelling)."""
         if section != "model" or saved is None:
+            if saved is not None and section in DEFAULTS:  # a key added since: its default
+                saved = {**{k: v for k, v in DEFAULTS[section].items() if k not in saved},
+                         **saved}
             return saved == self.cfg[section]
         try:
             return ModelConfig.from_dict(saved) == self.model_config
