@@ -371,3 +371,19 @@ def test_committed_pretraining_sets_hold_no_held_out_molecule():
                     own = sorted(a.GetAtomicNum() for a in mol.GetAtoms())
                     assert sorted(s.numbers[: len(own)].tolist()) == own, s.info["key"]
                     assert s.info["level"] == level != "pbe0/aug-cc-pvtz"
+
+
+def test_the_card_includes_the_files_its_notes_name(tmp_path):
+    """A ``<!-- include: PATH -->`` line of notes.md (PATH relative to the data-set folder,
+    e.g. the pilot's table that the bake-off writes under examples/) becomes that file's text
+    in the card, or a line saying it is not written yet; the other lines stay verbatim."""
+    folder = _tiny_campaign(tmp_path / "c")
+    (folder / campaign.NOTES_FILE).write_text(
+        "## Pilot\n\nWritten elsewhere:\n\n<!-- include: ../tables/pilot.md -->\n")
+    card = campaign.write_card(folder).read_text()
+    assert "## Pilot\n\nWritten elsewhere:\n\n*(`../tables/pilot.md`: not written yet)*" in card
+    (tmp_path / "tables").mkdir()
+    (tmp_path / "tables" / "pilot.md").write_text("### Pilot table\n\n| a | b |\n|---|---|\n")
+    card = campaign.write_card(folder).read_text()
+    assert "Written elsewhere:\n\n### Pilot table\n\n| a | b |\n|---|---|\n" in card
+    assert "include:" not in card and "not written yet" not in card

@@ -22,6 +22,7 @@ import hashlib
 import io
 import logging
 import os
+import re
 import socket
 import time
 from collections import Counter
@@ -58,6 +59,9 @@ log = logging.getLogger(__name__)
 CAMPAIGN_FILE = "campaign.yaml"
 #: hand-written measurements (e.g. the level choice) included in the card verbatim
 NOTES_FILE = "notes.md"
+#: a line of ``notes.md`` that the card replaces by a file (a table a script writes elsewhere,
+#: e.g. the pretraining pilot's): ``<!-- include: PATH -->``, PATH relative to the folder
+INCLUDE_RE = re.compile(r"^\s*<!--\s*include:\s*(\S+)\s*-->\s*$")
 #: the card's words for each field distribution (:data:`emlpack.qm.sampling.FIELD_DISTRIBUTIONS`)
 FIELD_TEXT = {"ball": "uniform in the ball, as the authors' data",
               "magnitude": "uniform direction, magnitude uniform in [0, max]"}
@@ -646,6 +650,23 @@ def order_lines(settings: dict, n_split: dict, test: list[str]) -> list[str]:
             f"- test molecules: {', '.join(test)}."]
 
 
+def notes_text(folder: str | Path) -> str:
+    """``FOLDER/notes.md`` as the card shows it: each ``<!-- include: PATH -->`` line
+    (:data:`INCLUDE_RE`, PATH relative to the folder) replaced by that file's text, or by a
+    line saying it is not written yet."""
+    folder = Path(folder)
+    out = []
+    for line in (folder / NOTES_FILE).read_text().strip().splitlines():
+        match = INCLUDE_RE.match(line)
+        if match is None:
+            out.append(line)
+            continue
+        path = folder / match.group(1)
+        out.append(path.read_text().strip() if path.is_file()
+                   else f"*(`{match.group(1)}`: not written yet)*")
+    return "\n".join(out)
+
+
 def write_card(folder: str | Path) -> Path:
     """Regenerate ``FOLDER/README.md`` from ``campaign.yaml``, ``molecules.csv`` and shards."""
     folder = Path(folder)
@@ -719,7 +740,7 @@ def write_card(folder: str | Path) -> Path:
     storage = settings.get("storage") or {}
     notes = folder / NOTES_FILE
     if notes.is_file():  # measurements written by hand (level choice, pilot), kept verbatim
-        lines += ["", notes.read_text().strip()]
+        lines += ["", notes_text(folder)]
     lines += ["", "## Files", "",
               f"`{CAMPAIGN_FILE}` settings and recipe; `{MOLECULES_FILE}` the list and split;",
               f"`{SHARD_DIR}/NNNN.h5` labels (emlpack HDF5 stores, never rewritten;"
