@@ -26,7 +26,10 @@
 #                 trained for its CPU budget (2 CPU h) and judged on the validation molecules
 #                 (examples/eqm7/bakeoff.py run, then table; runs/bakeoff/NAME, resumable: a
 #                 training goes on from its last.pt with the budget it has left), after
-#                 raman-dft on the same core; bakeoff.md/json committed as each candidate ends
+#                 raman-dft on the same core; bakeoff.md/json committed as each candidate ends;
+#                 its schnet-pretrained (issue 50's pilot, pilot.md in examples/qm7_cheap)
+#                 waits for 5000 cheap-level configurations without holding the chain up
+#                 (bakeoff.py done counts it as pending only once they are there)
 #   alpha-labels  paper-level polarizability labels of 300 mini-eQM7 training configurations
 #                 (examples/eqm7/polarizability_labels.py, ~17 CPU h; issue 51's stiffness
 #                 lever; one file a configuration, committed every 25 min), after bakeoff

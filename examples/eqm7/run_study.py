@@ -115,6 +115,8 @@ PAPER = {
     "ir": {"frequency_mae_cm-1": 15.0},
 }
 GROUP_LABEL = {"aug": "augmented", "noaug": "non-augmented"}
+#: the model groups: name -> trained with the paper's augmentation
+GROUPS = {"aug": True, "noaug": False}
 #: the IR molecules of Figure 4 (names in molecules.csv)
 IR_MOLECULES = {"qm7-0011": "aziridine", "extra-0000": "3-(methylamino)but-2-enal"}
 #: bands of the DFT frequency (cm⁻¹) for the IR errors by kind of mode: torsions, out-of-plane
@@ -266,7 +268,7 @@ class Study:
     # ------------------------------------------------------------------ models
     def groups(self) -> dict[str, bool]:
         """The model groups (name: augmented), restricted to ``cfg["groups"]`` when given."""
-        groups = {"aug": True, "noaug": False}
+        groups = GROUPS
         chosen = self.cfg.get("groups") or list(groups)
         unknown = sorted(set(chosen) - set(groups))
         if unknown:
@@ -322,6 +324,12 @@ def _read_json(path: Path):
 def _resolve(path) -> Path:
     p = Path(path)
     return p if p.is_absolute() or p.exists() else HERE / p
+
+
+def train_config_path(training: dict) -> Path:
+    """The training config file of the study's ``training`` section (``config``, default
+    train.yaml, relative to this folder unless it exists from the working directory)."""
+    return _resolve(training.get("config", "train.yaml"))
 
 
 def _subsample(items: list, limit: int | None) -> list:
@@ -382,7 +390,7 @@ def step_schedule(training: dict, n_train: int) -> list[str]:
     steps = training.get("steps")
     if steps is None:
         return []
-    batch = int(load_train_config(_resolve(training.get("config", "train.yaml")),
+    batch = int(load_train_config(train_config_path(training),
                                   training.get("overrides", []))
                 ["training"]["batch_size"])
     per_epoch = max(1, -(-int(n_train) // batch))
@@ -438,7 +446,7 @@ def stage_train(study: Study) -> list[Path]:
         if t.get("snapshots"):  # trainings longer than a session: committed snapshots
             overrides += [f"output.snapshot_dir={Path(t['snapshots']) / group / f'seed{seed}'}",
                           "output.snapshot_commit=true"]
-        cfg = load_train_config(_resolve(t.get("config", "train.yaml")), overrides)
+        cfg = load_train_config(train_config_path(t), overrides)
         t0 = time.perf_counter()
         best = train(cfg)  # resumes from last.pt when a previous run was cut off
         study.work["train"] += 1
