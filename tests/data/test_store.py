@@ -284,3 +284,151 @@ def test_a_frozen_shard_list_reads_those_shards_and_counts_them_without_labels(t
             store.text_column("energy")
     with pytest.raises(StoreError, match=r"no shard\(s\) 0007.h5 in shards/"):
         read_shards(folder, ["0000.h5", "0007.h5"])
+
+
+# ------------------------------------------------------------------ packed shards (format 2)
+def _labelled_records() -> list[Structure]:
+    """Records with every kind of column filled: NaN and None labels, a charge, a crystal
+    with stress, a polarizability, non-ASCII text."""
+    alpha = np.array([[1.1, 0.1, -0.2], [0.1, 1.3, 0.05], [-0.2, 0.05, 0.9]])
+    m = _methane(3)
+    charged = m.copy(charge=2.0, pairs=m.pairs[:3], pair_forces=m.pair_forces[:3])
+    charged.info = {**charged.info, "key": "ch4-/3", "molecule_id": "méthane"}
+    return [_methane(0), _water_crystal(), _methane(1, with_labels=False),
+            _methane(2).copy(polarizability=alpha), charged]
+
+
+def _assert_same_record(got: dict, ref: dict) -> None:
+    """Every field of two :meth:`DatasetStore.record` dicts equal, bit for bit (NaN = NaN)."""
+    assert got.keys() == ref.keys()
+    for name, value in ref.items():
+        if isinstance(value, (str, bool)):
+            assert got[name] == value, name
+        else:
+            assert got[name].dtype == value.dtype and got[name].shape == value.shape, name
+            assert got[name].tobytes() == value.tobytes(), name
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_packed_shard_reads_back_every_field_as_the_appendable_store(tmp_path, precision):
+    """write_packed → DatasetStore: records, iteration, keys, failures, references and
+    metadata equal to the same data appended to an appendable store of that precision."""
+    records = _labelled_records()
+    failures = [{"key": "ch4/9", "molecule_id": "ch4", "kind": "nms600",
+                 "reason": "SCF not converged"}]
+    references = {"CH4": {"energy": -1101.3, "level": "pbe0/aug-cc-pvtz"},
+                  "H2": {"energy": -31.7, "level": "pbe0/aug-cc-pvtz"}}
+    meta = {"recipe": "nms600: 100\n", "run_wall_s": 12.5, "run_workers": np.int64(2),
+            "run_host": "x"}
+    old = tmp_path / "appendable.h5"
+    with DatasetStore(old, "a", compact=True, precision=precision, compress=True) as st:
+        st.append(records)
+        st.add_failures(failures)
+        for name, ref in references.items():
+            st.set_reference(name, ref["energy"], ref["level"])
+        st.set_metadata(**meta)
+    new = store_mod.write_packed(tmp_path / "packed.h5", records, failures, references, meta,
+                                 precision=precision)
+    with DatasetStore(old) as a, DatasetStore(new) as b:
+        assert len(b) == len(a) == len(records) and b.keys() == a.keys()
+        for i in range(len(a)):
+            _assert_same_record(b.record(i), a.record(i))
+        for sa, sb in zip(a, b, strict=True):  # whole columns at once: the same structures
+            assert sb.info.keys() == sa.info.keys()
+            assert all(np.array_equal(sb.info[k], v, equal_nan=k == "wall_time")
+                       for k, v in sa.info.items())
+            assert sb.source.endswith(sa.source.rsplit(",", 1)[1])
+            for name in ("numbers", "positions", "pairs", "forces", "pair_forces", "cell",
+                         "field", "stress", "polarizability", "energy", "charge", "pbc"):
+                va, vb = getattr(sa, name), getattr(sb, name)
+                assert (va is None and vb is None) or np.array_equal(va, vb), name
+        assert b.failures() == a.failures() == failures
+        assert b.references() == a.references() == references
+        ma, mb = a.metadata, b.metadata
+        assert mb.pop("format_version") == store_mod.PACKED_VERSION
+        assert ma.pop("format_version") == store_mod.FORMAT_VERSION
+        assert mb == ma and mb["run_workers"] == 2 and mb["unit_field"] == "V/angstrom"
+        assert b.storage == {"format_version": 2, "precision": precision, "compress": True}
+    if precision == "float32":  # float32 keeps ~1e-7 relative; energies, fields exact
+        with DatasetStore(new) as b:
+            np.testing.assert_allclose(b[0].positions, records[0].positions, rtol=1e-6)
+            assert b[0].energy == records[0].energy
+            np.testing.assert_array_equal(b[0].field, records[0].field)
+
+
+def test_packed_shard_is_small_and_written_once(tmp_path):
+    """30 small-molecule records: ≤ 2 kB per configuration with its HDF5 overhead (the
+    appendable layout: ~3 kB each); a packed file cannot be appended to, and is left as it was
+    (no lock file beside it)."""
+    records = [_methane(i) for i in range(30)]
+    path = store_mod.write_packed(tmp_path / "0000.h5", records, precision="float32")
+    old = tmp_path / "old.h5"
+    with DatasetStore(old, "a", compact=True, precision="float32", compress=True) as st:
+        st.append(records)
+    assert path.stat().st_size / 30 < 1000 < old.stat().st_size / 30
+    before = path.read_bytes()
+    with pytest.raises(StoreError, match="packed shard is written once"):
+        DatasetStore(path, "a")
+    with pytest.raises(StoreError, match="already stored"):
+        store_mod.write_packed(tmp_path / "dup.h5", [_methane(0), _methane(0)])
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [
+        "0000.h5", "old.h5", "old.h5.lock"]
+    plain = store_mod.write_packed(tmp_path / "plain.h5", records, compress=False)
+    with DatasetStore(plain) as st:
+        assert not st.storage["compress"] and st.keys() == [s.info["key"] for s in records]
+
+
+def test_packed_shard_of_failures_only_and_of_many_chunks(tmp_path):
+    """A shard with failures and no record reads as empty; one of 1200 records (several
+    chunks per table) reads every record back in any order."""
+    failed = [{"key": "m0/0", "molecule_id": "m0", "kind": "nms600", "reason": "x" * 2000}]
+    path = store_mod.write_packed(tmp_path / "f.h5", [], failed)
+    with DatasetStore(path) as st:
+        assert len(st) == 0 and list(st) == [] and st.keys() == [] and st.references() == {}
+        assert st.failures()[0]["reason"].endswith("...") and st.done_keys() == {"m0/0"}
+    records = [_methane(i) for i in range(1200)]
+    path = store_mod.write_packed(tmp_path / "big.h5", records)
+    import h5py
+
+    with h5py.File(path) as f:
+        assert f["records"].chunks[0] < 1200 and f["cores"].chunks[0] < 6000
+    with DatasetStore(path) as st:
+        for i in (1199, 0, 457, 800):
+            np.testing.assert_array_equal(st[i].positions, records[i].positions)
+            np.testing.assert_array_equal(st[i].forces, records[i].forces)
+        assert [s.info["key"] for s in st] == [s.info["key"] for s in records]
+
+
+@pytest.mark.parametrize("name", ["qm7-pbe0-def2svpd", "beta-glycine", "mini-eqm7"])
+def test_committed_shards_read_as_stored_and_repack_bit_for_bit(tmp_path, name):
+    """A committed shard of each data set (appendable layout, never rewritten): the reader
+    returns its columns as h5py stores them, and the same records packed again read back
+    identical (float32 columns too: float32 → float64 → float32 is exact) in a file at most a
+    third of the size."""
+    import h5py
+
+    from emlpack.data.shards import shard_paths
+
+    paths = shard_paths(ROOT / "datasets" / name)
+    if not paths:
+        pytest.skip(f"datasets/{name} has no shards in this checkout")
+    shard = paths[0]
+    with DatasetStore(shard) as st, h5py.File(shard, "r", locking=False) as f:
+        assert st.storage["format_version"] == store_mod.FORMAT_VERSION
+        n, n_cores = int(f.attrs["n_records"]), int(f.attrs["n_cores"])
+        assert st.keys() == [k.decode() for k in f["records/key"][:n]]
+        bulk = np.concatenate([s.positions for s in st])
+        assert bulk.tobytes() == f["cores/positions"][:n_cores].astype(np.float64).tobytes()
+        records = [st.record(i) for i in range(len(st))]
+        structures, layout = list(st), st.storage
+        failures, references, meta = st.failures(), st.references(), st.metadata
+    packed = store_mod.write_packed(
+        tmp_path / shard.name, structures, failures, references,
+        {k: v for k, v in meta.items() if k.startswith("run_") or k == "recipe"},
+        precision=layout["precision"], compress=True)
+    with DatasetStore(packed) as st:
+        assert st.keys() == [r["key"] for r in records] and st.failures() == failures
+        for i, ref in enumerate(records):
+            _assert_same_record(st.record(i), ref)
+        assert st.metadata.get("recipe") == meta.get("recipe")
+    assert packed.stat().st_size < shard.stat().st_size / 3

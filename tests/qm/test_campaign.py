@@ -126,6 +126,66 @@ def test_campaign_resumes_from_shards_on_a_fresh_machine(tmp_path, monkeypatch):
     assert "8 configurations of 2 molecules (2 complete)" in card
 
 
+def test_new_shards_are_packed_beside_appendable_ones(tmp_path):
+    """export_shard writes the packed layout (format 2); a folder whose first shard has the
+    appendable layout (as every shard committed before) reads as one data set, the card names
+    both, and nothing new makes no shard."""
+    from emlpack.data import store as store_mod
+    from emlpack.data.shards import shards_size_text
+    from tests.data.test_store import _methane
+
+    folder = _tiny_campaign(tmp_path / "c")
+
+    def record(i: int, name: str):
+        s = _methane(i)
+        s.info = {**s.info, "key": f"{name}/nms600/{i:04d}", "molecule_id": name}
+        return s
+
+    old = [record(i, "m0") for i in range(3)]
+    with DatasetStore(folder / "shards" / "0000.h5", "a", compact=True) as st:  # the old path
+        st.append(old)
+    hydride = _methane(9).copy(info={"key": "hydride/CH4", "molecule_id": "CH4",
+                                     "kind": "hydride"})
+    new = [record(i, "m1") for i in range(3, 7)]
+    with DatasetStore(tmp_path / "work.h5", "a") as work:
+        work.append([*old, *new, hydride])
+        work.add_failures([{"key": "m1/nms600/0099", "molecule_id": "m1", "kind": "nms600",
+                            "reason": "SCF not converged"}])
+        work.set_reference("CH4", -1101.3, "tiny")
+        work.set_metadata(recipe="level: tiny\n")
+        idx, fail = campaign.unexported(folder, work)
+        assert len(idx) == 5 and len(fail) == 1
+        shard = campaign.export_shard(folder, work, {"wall_s": 60.0, "host": "h"})
+        assert campaign.export_shard(folder, work, {"wall_s": 1.0}) is None
+        assert campaign.unexported(folder, work) == ([], [])
+    with DatasetStore(shard) as st:
+        assert st.storage == {"format_version": store_mod.PACKED_VERSION,
+                              "precision": "float64", "compress": True}
+        assert len(st) == 5 and st.references() == {"CH4": {"energy": -1101.3, "level": "tiny"}}
+        assert st.metadata["run_wall_s"] == 60.0 and st.metadata["recipe"] == "level: tiny\n"
+    data = read_shards(folder)
+    assert [s.info["key"] for s in data.structures] == [s.info["key"] for s in [*old, *new]]
+    np.testing.assert_array_equal(data.structures[4].forces, new[1].forces)
+    assert len(data.failures) == 1 and data.metadata[1]["run_host"] == "h"
+    text = shards_size_text(folder)
+    assert ("shards 0000: float64 positions and forces, appendable layout; shards 0001:"
+            " float64 positions and forces, gzip, packed layout") in text
+    with pytest.raises(campaign.StoreError, match="unknown storage settings"):
+        campaign.shard_storage({"layout": "x"}, folder)
+
+
+def test_shards_wait_for_enough_records(tmp_path):
+    """With a shard due at every stored record, a shard waits for ``shard_min_records`` new
+    records; the last one, when the run ends, takes whatever is left."""
+    folder = _tiny_campaign(tmp_path / "c")
+    out = campaign.run_campaign(folder, workers=0, progress=False, shard_minutes=0.0,
+                                shard_min_records=3)
+    sizes = [len(DatasetStore(p)) for p in shard_paths(folder)]
+    assert out["new_records"] == 8 and sum(sizes) == 8 and len(sizes) == len(out["shards"])
+    assert len(sizes) >= 2 and all(n >= 3 for n in sizes[:-1])
+    assert "packed layout" in (folder / "README.md").read_text()
+
+
 def test_a_changed_field_distribution_continues_in_a_new_store(tmp_path):
     """A campaign whose recipe predates ``field_distribution`` (magnitude-uniform fields) goes
     on with the ball: its finished labels (even one no shard holds yet) are kept, the rest is
@@ -338,7 +398,7 @@ def test_pretraining_selection_leaves_out_every_held_out_graph(tmp_path):
     assert target["prefix"] == 10 and not target["reached"]
     card = (folder / "README.md").read_text()
     assert "not the paper's level" in card and "pbe0/def2-svpd/grid1" in card
-    assert "float32, gzip-compressed" in card
+    assert "new shards: float32 positions and forces, gzip, packed layout" in card
     with pytest.raises(campaign.StoreError, match="exists already"):
         campaign.init_campaign(folder, path, exclude=[MINI_EQM7])
 

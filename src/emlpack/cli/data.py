@@ -149,7 +149,11 @@ def add_campaign(sub: Subparsers) -> None:
     pr.add_argument("--threads", type=int, help="threads per process (default CPUs/workers)")
     pr.add_argument("--hours", type=float, help="stop after this wall time")
     pr.add_argument("--shard-minutes", type=float, default=20.0,
-                    help="finished labels become a new shard this often (default 20)")
+                    help="finished labels become a new shard this often (default 20), once"
+                         " there are --shard-min-records of them")
+    pr.add_argument("--shard-min-records", type=int, default=None,
+                    help="fewest new records (and failures) per shard before the run stops"
+                         " (default 10; the last shard takes whatever is left)")
     pr.add_argument("--commit", action="store_true", help="git-commit each new shard")
     pr.add_argument("--quiet", action="store_true", help="no progress bar")
     pr.add_argument("--retry-failed", action="store_true",
@@ -186,6 +190,9 @@ def add_campaign(sub: Subparsers) -> None:
                 out = campaign.run_campaign(args.folder, workers=args.workers,
                                             threads=args.threads, hours=args.hours,
                                             shard_minutes=args.shard_minutes,
+                                            shard_min_records=campaign.SHARD_MIN_RECORDS
+                                            if args.shard_min_records is None
+                                            else args.shard_min_records,
                                             commit=args.commit, progress=not args.quiet,
                                             retry_failed=args.retry_failed,
                                             past_target=args.past_target)

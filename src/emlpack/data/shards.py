@@ -6,7 +6,9 @@ Layout of a data-set folder (see :mod:`emlpack.qm.campaign`, which writes it)::
     campaign.yaml      selection and labeling recipe
     README.md          the data-set card
     shards/NNNN.h5     finished labels, one small :class:`~emlpack.data.store.DatasetStore`
-                       per shard, never rewritten once committed
+                       per shard, never rewritten once committed (written in the packed
+                       layout, :func:`~emlpack.data.store.write_packed`; the earlier ones in
+                       the appendable layout: both read alike)
     prepared/NAME.npz  the cheap-level geometry and Hessian each molecule was sampled from
     polarizability/KEY.json
                        optional: a DFT polarizability label of one stored configuration
@@ -27,7 +29,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from emlpack.data.store import DatasetStore, StoreError
+from emlpack.data.store import PACKED_VERSION, DatasetStore, StoreError
 from emlpack.structure import Structure
 
 if TYPE_CHECKING:
@@ -104,6 +106,33 @@ def read_molecule_table(folder: str | Path) -> list[dict]:
 def shard_paths(folder: str | Path) -> list[Path]:
     """The shard files of ``folder`` in order (``shards/NNNN.h5``)."""
     return sorted((Path(folder) / SHARD_DIR).glob("[0-9][0-9][0-9][0-9].h5"))
+
+
+def shards_size_text(folder: str | Path) -> str:
+    """The data-set card's words on the shards of ``folder``, measured from the files: their
+    size, bytes per stored configuration (hydride references included) and, per run of
+    consecutive shards stored alike, the positions' and forces' type, compression and layout,
+    e.g. ``"2.1 MB, 1.4 kB per configuration; shards 0000-0157: float64 positions and forces,
+    appendable layout; shards 0158-0160: float64 positions and forces, gzip, packed layout"``.
+    """
+    paths = shard_paths(folder)
+    size = sum(p.stat().st_size for p in paths)
+    n = 0
+    runs: list[list] = []  # [first, last, description]
+    for path in paths:
+        with DatasetStore(path, "r") as store:
+            n += len(store)
+            how = store.storage
+        text = (f"{how['precision']} positions and forces{', gzip' if how['compress'] else ''},"
+                f" {'packed' if how['format_version'] == PACKED_VERSION else 'appendable'}"
+                " layout")
+        if runs and runs[-1][2] == text:
+            runs[-1][1] = path.stem
+        else:
+            runs.append([path.stem, path.stem, text])
+    parts = [f"{size / 1e6:.1f} MB, {size / max(n, 1) / 1e3:.1f} kB per configuration"]
+    parts += [f"shards {a}{'' if a == b else '-' + b}: {text}" for a, b, text in runs]
+    return "; ".join(parts)
 
 
 def chosen_shards(folder: str | Path, shards: Sequence[str] | None = None) -> list[Path]:

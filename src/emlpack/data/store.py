@@ -1,6 +1,9 @@
-"""HDF5 dataset store: an append-only file of ragged eMLP records, readable by index.
+"""HDF5 dataset store: ragged eMLP records, readable by index, in one of two layouts.
 
-Layout (all in emlpack's public units: Å, eV, eV/Å, V/Å, eV/Å^3, e)::
+Units everywhere: emlpack's public ones (Å, eV, eV/Å, V/Å, eV/Å^3, e, e·Å²/V).
+
+**Appendable layout** (``format_version`` 1): the working stores of labeling runs, and the
+shards written before the packed layout existed. One chunked, growable dataset per column::
 
     /cores/numbers (n_cores_total,) int16      /cores/positions, /cores/forces (.., 3)
     /pairs/positions (n_pairs_total, 3)        /pairs/forces (n_pairs_total, 3)
@@ -10,19 +13,31 @@ Layout (all in emlpack's public units: Å, eV, eV/Å, V/Å, eV/Å^3, e)::
     /failures/{key, molecule_id, kind, reason}
     /references/{name, energy, level}          (e.g. the hydrides H2, CH4, NH3, H2O)
 
+**Packed layout** (``format_version`` 2, :func:`write_packed`): a finished, immutable shard
+written in one go. The same columns as fields of one compound (table) dataset per group,
+``/cores``, ``/pairs``, ``/records``, ``/failures``, ``/references`` (the last two only when
+they have rows), of fixed size, gzip + shuffle where that makes them smaller, with HDF5 1.10
+object headers and no metadata block padding; the file attributes (precision, units, counts,
+run information, recipe) are one UTF-8 JSON attribute ``metadata`` of fixed length (a
+variable-length string would cost a 4 kB global heap). Every chunked column of the appendable
+layout carries ~2.5 kB of chunk index and header whatever its length (~70 kB a file); the
+packed layout carries ~2-3 kB a file in all. A packed file opens read-only; readers handle both
+layouts alike, and read appendable files exactly as before.
+
 Missing labels are NaN (``energy``, ``forces``, ``stress``, ``polarizability``). The
-``polarizability`` column (e·Å²/V, clamped nuclei) is optional: stores written before it
-existed read as unlabelled, and the first record with one adds the column (NaN for the records
-before it). Each record has a unique ``key``
+``polarizability`` column (e·Å²/V, clamped nuclei) is optional in the appendable layout: stores
+written before it existed read as unlabelled, and the first record with one adds the column
+(NaN for the records before it). Each record has a unique ``key``
 (e.g. ``"qm7-0003/nms800/0017"``), which makes labeling resumable.
 
-Crash safety: the number of committed rows of every group is an attribute of the file
-(``n_records``, ``n_cores``, ``n_pairs``, ...). An append writes and flushes the data beyond
-the committed end first and only then moves the counters (and flushes again). A process killed
-in between leaves rows beyond the counters, which readers ignore and the next writer
-overwrites: a record is either fully there or absent. (HDF5 has no journal; a kill during the
-flush of HDF5's own metadata could still damage the file, which is why writers batch records
-and flush rarely relative to the work between them.)
+Crash safety (appendable layout): the number of committed rows of every group is an attribute
+of the file (``n_records``, ``n_cores``, ``n_pairs``, ...). An append writes and flushes the
+data beyond the committed end first and only then moves the counters (and flushes again). A
+process killed in between leaves rows beyond the counters, which readers ignore and the next
+writer overwrites: a record is either fully there or absent. (HDF5 has no journal; a kill during
+the flush of HDF5's own metadata could still damage the file, which is why writers batch records
+and flush rarely relative to the work between them.) A packed file is written under a temporary
+name and renamed, so it is complete or absent.
 
 The reader is torch-free; open one :class:`DatasetStore` per process (it reopens itself after a
 fork, so it can be shared with data-loader workers).
@@ -30,8 +45,10 @@ fork, so it can be shared with data-loader workers).
 
 from __future__ import annotations
 
+import json
 import os
-from collections.abc import Iterable, Iterator
+import zlib
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -43,10 +60,12 @@ from emlpack.structure import Structure
 
 if TYPE_CHECKING:
     import h5py
-    from numpy.typing import DTypeLike
 
 FORMAT = "emlpack-store"
+#: the appendable, chunked layout (working stores; shards written before the packed layout)
 FORMAT_VERSION = 1
+#: the packed, write-once layout of finished shards (:func:`write_packed`)
+PACKED_VERSION = 2
 UNITS = {
     "positions": "angstrom", "energy": "eV", "forces": "eV/angstrom", "field": "V/angstrom",
     "stress": "eV/angstrom^3", "charge": "e", "cell": "angstrom (rows are lattice vectors)",
@@ -66,6 +85,16 @@ _STR_LEN = {"molecule_id": 128, "kind": 32, "level": 64, "key": 128, "reason": 1
 _REC_STR = ("molecule_id", "kind", "level", "key")
 _FAIL_STR = ("key", "molecule_id", "kind", "reason")
 _REF_STR = ("name", "level")
+#: rows per chunk of the appendable layout's columns, by group
+_CHUNK_ROWS = {"cores": 4096, "pairs": 4096, "records": 1024, "failures": 256,
+               "references": 64}
+#: packed layout: at most this many bytes per chunk (below h5py's 1 MiB chunk cache, so that
+#: reading record after record decompresses each chunk once)
+_PACKED_CHUNK_BYTES = 256 * 1024
+#: packed layout: what a filter pipeline and chunk index cost beyond a contiguous dataset
+#: (bytes, measured); gzip is used only where it saves more
+_FILTER_BYTES = 64
+_GZIP = {"compression": "gzip", "compression_opts": 6, "shuffle": True}
 
 
 class StoreError(EmlpackError, RuntimeError):
@@ -100,10 +129,9 @@ class DatasetStore:
         self._key_cache: set[str] | None = None
         self._lock_fd: int | None = None
         self._compact = bool(compact)
-        if precision not in ("float64", "float32"):
-            raise ValueError(f"precision must be 'float64' or 'float32', got {precision!r}")
-        self._precision = precision
+        self._precision = _checked_precision(precision)
         self._compress = bool(compress)
+        self._packed = False
         if mode == "r" and not self.path.exists():
             raise StoreError(f"{self.path}: no such dataset store")
         self._open()
@@ -116,6 +144,9 @@ class DatasetStore:
             with atomic_path(self.path) as tmp, h5py.File(tmp, "w") as f:
                 _create_layout(f, chunk_scale=1 / 16 if self._compact else 1.0,
                                precision=self._precision, compress=self._compress)
+        if self.mode == "a" and _format_version(self.path) == PACKED_VERSION:
+            raise StoreError(f"{self.path}: a packed shard is written once and never appended"
+                             " to (open it with mode 'r')")
         try:
             if self.mode == "a":
                 self._lock_writer()
@@ -125,11 +156,12 @@ class DatasetStore:
         except OSError as exc:
             raise StoreError(f"{self.path}: cannot open as an HDF5 dataset store: {exc}") from None
         self._pid = os.getpid()
-        if self._file.attrs.get("format") != FORMAT:
+        if _text(self._file.attrs.get("format", b"")) != FORMAT:
             raise StoreError(f"{self.path}: not an emlpack dataset store")
         version = int(self._file.attrs.get("format_version", -1))
-        if version != FORMAT_VERSION:
+        if version not in (FORMAT_VERSION, PACKED_VERSION):
             raise StoreError(f"{self.path}: store format version {version} is not supported")
+        self._packed = version == PACKED_VERSION
         if self.mode == "a":
             self._truncate_uncommitted()
 
@@ -192,8 +224,34 @@ class DatasetStore:
         f.flush()
 
     # ------------------------------------------------------------------ reading
+    def _count(self, group: str) -> int:
+        """Committed rows of ``group`` (``records``, ``cores``, ``pairs``, ``failures``,
+        ``references``)."""
+        f = self.file
+        if self._packed:
+            return int(f[group].shape[0]) if group in f else 0
+        return int(f.attrs[f"n_{group}"])
+
+    def _rows(self, group: str, names: Iterable[str], start: int = 0,
+              stop: int | None = None) -> dict[str, np.ndarray]:
+        """The columns ``names`` that ``group`` has, rows ``start:stop`` (default: to the
+        committed end), from either layout."""
+        f = self.file
+        stop = self._count(group) if stop is None else stop
+        if group not in f:
+            return {}
+        node = f[group]
+        if self._packed:
+            present = [n for n in names if n in node.dtype.names]
+            if not present:
+                return {}
+            rows = node.fields(present)[start:stop] if stop > start else np.zeros(
+                0, dtype=[(n, node.dtype[n]) for n in present])
+            return {n: rows[n] for n in present}
+        return {n: node[n][start:stop] for n in names if n in node}
+
     def __len__(self) -> int:
-        return int(self.file.attrs["n_records"])
+        return self._count("records")
 
     def __getitem__(self, index: int) -> Structure:
         return self.structure(index)
@@ -204,12 +262,9 @@ class DatasetStore:
         n = len(self)
         if n == 0:
             return
-        f = self.file
-        rec = f["records"]
-        cols = {name: rec[name][:n] for name in (*_REC_INT, *_REC_FLOAT, *_REC_STR,
-                                                 *_present(rec, _REC_OPTIONAL))}
-        cores = {name: f[f"cores/{name}"][:] for name in ("numbers", "positions", "forces")}
-        pairs = {name: f[f"pairs/{name}"][:] for name in ("positions", "forces")}
+        cols = self._rows("records", _RECORD_COLUMNS)
+        cores = self._rows("cores", ("numbers", "positions", "forces"))
+        pairs = self._rows("pairs", ("positions", "forces"))
         for i in range(n):
             yield self._structure(self._record_from(cols, cores, pairs, i), i)
 
@@ -240,16 +295,12 @@ class DatasetStore:
         if not -n <= index < n:
             raise IndexError(f"{self.path}: record {index} out of range (store has {n})")
         index %= n
-        f = self.file
-        rec = f["records"]
-        c0, nc = int(rec["core_start"][index]), int(rec["n_cores"][index])
-        p0, npair = int(rec["pair_start"][index]), int(rec["n_pairs"][index])
-        cols = {name: rec[name][index:index + 1]
-                for name in (*_REC_INT, *_REC_FLOAT, *_REC_STR, *_present(rec, _REC_OPTIONAL))}
+        cols = self._rows("records", _RECORD_COLUMNS, index, index + 1)
+        c0, nc = int(cols["core_start"][0]), int(cols["n_cores"][0])
+        p0, npair = int(cols["pair_start"][0]), int(cols["n_pairs"][0])
         cols["core_start"], cols["pair_start"] = np.array([0]), np.array([0])
-        cores = {name: f[f"cores/{name}"][c0:c0 + nc] for name in ("numbers", "positions",
-                                                                   "forces")}
-        pairs = {name: f[f"pairs/{name}"][p0:p0 + npair] for name in ("positions", "forces")}
+        cores = self._rows("cores", ("numbers", "positions", "forces"), c0, c0 + nc)
+        pairs = self._rows("pairs", ("positions", "forces"), p0, p0 + npair)
         return self._record_from(cols, cores, pairs, 0)
 
     def structure(self, index: int) -> Structure:
@@ -282,13 +333,12 @@ class DatasetStore:
         records, in order, without reading their arrays."""
         if name not in _REC_STR:
             raise StoreError(f"{self.path}: no text column {name!r} (known: {_REC_STR})")
-        return [_text(k) for k in self.file[f"records/{name}"][: len(self)]]
+        return [_text(k) for k in self._rows("records", (name,)).get(name, [])]
 
     def failures(self) -> list[dict]:
         """Recorded failures: dicts with key, molecule_id, kind and reason."""
-        g = self.file["failures"]
-        n = int(self.file.attrs["n_failures"])
-        cols = {name: g[name][:n] for name in _FAIL_STR}
+        n = self._count("failures")
+        cols = self._rows("failures", _FAIL_STR)
         return [{name: _text(cols[name][i]) for name in _FAIL_STR} for i in range(n)]
 
     def done_keys(self) -> set[str]:
@@ -297,8 +347,8 @@ class DatasetStore:
 
     def references(self) -> dict[str, dict]:
         """Reference energies (eV) by name, e.g. the hydrides, with their level of theory."""
-        g = self.file["references"]
-        n = int(self.file.attrs["n_references"])
+        n = self._count("references")
+        g = self._rows("references", ("name", "energy", "level"))
         out = {}
         for i in range(n):
             out[_text(g["name"][i])] = {"energy": float(g["energy"][i]),
@@ -307,8 +357,28 @@ class DatasetStore:
 
     @property
     def metadata(self) -> dict:
-        """File attributes (format, units, and e.g. the labeling recipe as YAML text)."""
-        return {k: _text(v) if isinstance(v, bytes) else v for k, v in self.file.attrs.items()}
+        """File attributes (format, units, and e.g. the labeling recipe as YAML text); of a
+        packed file, those of its ``metadata`` JSON attribute beside ``format`` and
+        ``format_version``."""
+        out = {k: _text(v) if isinstance(v, bytes) else v for k, v in self.file.attrs.items()}
+        if self._packed:
+            out.update(json.loads(out.pop("metadata", "{}")))
+        return out
+
+    @property
+    def storage(self) -> dict:
+        """How the file holds its data: ``format_version`` (:data:`FORMAT_VERSION`
+        appendable, :data:`PACKED_VERSION` packed), ``precision`` of the positions and forces,
+        ``compress`` (gzip on any of them)."""
+        f = self.file
+        if self._packed:
+            precision = f["cores"].dtype["positions"].base.name
+            compress = any(f[g].compression is not None for g in f)
+        else:
+            precision = f["cores/positions"].dtype.name
+            compress = f["cores/positions"].compression is not None
+        return {"format_version": PACKED_VERSION if self._packed else FORMAT_VERSION,
+                "precision": precision, "compress": compress}
 
     # ------------------------------------------------------------------ writing
     def _writable(self):
@@ -333,55 +403,18 @@ class DatasetStore:
             raise ValueError("append: as many keys as structures are needed")
         if self._key_cache is None:
             self._key_cache = set(self.keys())
-        existing = set(self._key_cache)
-        for k in keys:
-            if not k:
-                raise StoreError(f"{self.path}: every record needs a non-empty key")
-            if k in existing:
-                raise StoreError(f"{self.path}: a record with key {k!r} is already stored")
-            existing.add(k)
+        _check_keys(keys, self._key_cache, self.path)
         f = self._writable()
         n_rec, n_c, n_p = (int(f.attrs[a]) for a in ("n_records", "n_cores", "n_pairs"))
-        core_len = [s.n_cores for s in structures]
-        pair_len = [s.n_pairs for s in structures]
-        core_start = n_c + np.concatenate([[0], np.cumsum(core_len)[:-1]])
-        pair_start = n_p + np.concatenate([[0], np.cumsum(pair_len)[:-1]])
-        nan3 = np.full((3, 3), np.nan)
-
-        def forces_of(s: Structure, attr: str, n: int):
-            value = getattr(s, attr)
-            return np.full((n, 3), np.nan) if value is None else value
-
-        cores = {
-            "numbers": np.concatenate([s.numbers for s in structures]).astype(np.int16),
-            "positions": np.concatenate([s.positions for s in structures]),
-            "forces": np.concatenate([forces_of(s, "forces", s.n_cores) for s in structures]),
-        }
-        pairs = {
-            "positions": np.concatenate([s.pairs for s in structures]).reshape(-1, 3),
-            "forces": np.concatenate(
-                [forces_of(s, "pair_forces", s.n_pairs) for s in structures]
-            ).reshape(-1, 3),
-        }
-        recs = {
-            "core_start": core_start, "n_cores": core_len, "pair_start": pair_start,
-            "n_pairs": pair_len, "pbc": [s.pbc for s in structures],
-            "energy": [np.nan if s.energy is None else s.energy for s in structures],
-            "field": [s.field for s in structures],
-            "cell": [s.cell for s in structures],
-            "charge": [s.charge for s in structures],
-            "stress": [nan3 if s.stress is None else s.stress for s in structures],
-            "wall_time": [float(s.info.get("wall_time", np.nan)) for s in structures],
-            "molecule_id": [str(s.info.get("molecule_id", "")) for s in structures],
-            "kind": [str(s.info.get("kind", "")) for s in structures],
-            "level": [str(s.info.get("level", "")) for s in structures],
-            "key": keys,
-        }
-        alphas = [nan3 if s.polarizability is None else s.polarizability for s in structures]
+        cores, pairs, recs = _columns(structures, keys)
+        core_len, pair_len = recs["n_cores"], recs["n_pairs"]
+        recs["core_start"] = n_c + recs["core_start"]
+        recs["pair_start"] = n_p + recs["pair_start"]
         if "polarizability" in f["records"] or any(s.polarizability is not None
                                                    for s in structures):
-            recs["polarizability"] = alphas
             _add_optional_column(f["records"], "polarizability", n_rec)
+        else:
+            del recs["polarizability"]
         _write_rows(f["cores"], cores, n_c)
         _write_rows(f["pairs"], pairs, n_p)
         _write_rows(f["records"], recs, n_rec)
@@ -457,52 +490,210 @@ class DatasetStore:
         return store
 
 
+def write_packed(path: str | os.PathLike, structures: Iterable[Structure],
+                 failures: Iterable[dict] = (), references: Mapping[str, dict] | None = None,
+                 metadata: Mapping[str, str | int | float | bool] | None = None,
+                 precision: str = "float64", compress: bool = True) -> Path:
+    """Write a finished shard in the packed layout (:data:`PACKED_VERSION`) in one go.
+
+    Args:
+        path: the ``.h5`` file (written under a temporary name, then renamed onto it).
+        structures: the records, as :meth:`DatasetStore.append` takes them (keys from
+            ``info["key"]``, unique and non-empty).
+        failures: dicts with key, molecule_id, kind and reason (:meth:`DatasetStore.failures`).
+        references: name -> ``{"energy": eV, "level": str}`` (:meth:`DatasetStore.references`).
+        metadata: further attributes (strings or numbers), e.g. ``recipe`` and ``run_*``.
+        precision: ``"float64"`` or ``"float32"``, the positions' and forces' type (as for
+            :class:`DatasetStore`); energies, fields, cells and stresses stay float64.
+        compress: gzip + shuffle on each table where that makes it smaller.
+    Returns ``path``; :class:`DatasetStore` reads it (read-only) like any store.
+    """
+    import h5py
+
+    precision = _checked_precision(precision)
+    path = Path(path)
+    structures = list(structures)
+    keys = [str(s.info.get("key", "")) for s in structures]
+    _check_keys(keys, set(), path)
+    cores, pairs, recs = _columns(structures, keys)
+    failures = list(failures)
+    refs = dict(references or {})
+    columns = {
+        "cores": cores, "pairs": pairs, "records": recs,
+        "failures": {name: [str(d.get(name, "")) for d in failures] for name in _FAIL_STR},
+        "references": {"name": list(refs), "energy": [float(r["energy"]) for r in refs.values()],
+                       "level": [str(r["level"]) for r in refs.values()]},
+    }
+    tables = {group: _table(columns[group], fields)
+              for group, fields in _schema(precision).items()}
+    info: dict = {"precision": precision, **{f"unit_{k}": v for k, v in UNITS.items()},
+                  **{f"n_{group}": len(table) for group, table in tables.items()}}
+    for key, value in (metadata or {}).items():
+        value = value.item() if isinstance(value, np.generic) else value
+        if not isinstance(value, (str, int, float, bool)):
+            raise StoreError(f"{path}: metadata {key!r} must be a string or a number, got"
+                             f" {type(value).__name__}")
+        info[key] = value
+    with atomic_path(path) as tmp:
+        # HDF5 1.10 object headers (readable by HDF5 >= 1.10) and no 2 kB metadata blocks
+        with h5py.File(tmp, "w", libver=("v110", "v110"), meta_block_size=0) as f:
+            f.attrs["format"] = np.bytes_(FORMAT.encode())
+            f.attrs["format_version"] = PACKED_VERSION
+            f.attrs["metadata"] = np.bytes_(json.dumps(info).encode())
+            for group, table in tables.items():
+                if len(table) or group in ("cores", "pairs", "records"):
+                    _put_table(f, group, table, compress)
+    return path
+
+
 # ---------------------------------------------------------------------------------- helpers
+#: every column of ``/records`` (the optional ones too)
+_RECORD_COLUMNS = (*_REC_INT, *_REC_FLOAT, *_REC_OPTIONAL, *_REC_STR)
+
+
+def _checked_precision(precision: str) -> str:
+    """``precision`` when it is ``"float64"`` or ``"float32"``; ValueError otherwise."""
+    if precision not in ("float64", "float32"):
+        raise ValueError(f"precision must be 'float64' or 'float32', got {precision!r}")
+    return precision
+
+
+def _schema(precision: str) -> dict[str, list[tuple[str, np.dtype, tuple[int, ...]]]]:
+    """The columns of each group, ``(name, dtype, shape of one row)``, for both layouts;
+    ``precision`` is the per-particle columns' float type."""
+    per_particle = np.dtype(precision)
+
+    def text(name: str) -> tuple[str, np.dtype, tuple[int, ...]]:
+        return name, np.dtype(f"S{_STR_LEN[name]}"), ()
+
+    return {
+        "cores": [("numbers", np.dtype(np.int16), ()), ("positions", per_particle, (3,)),
+                  ("forces", per_particle, (3,))],
+        "pairs": [("positions", per_particle, (3,)), ("forces", per_particle, (3,))],
+        "records": [*((name, np.dtype(np.float64), shape)
+                      for name, shape in {**_REC_FLOAT, **_REC_OPTIONAL}.items()),
+                    *((name, np.dtype(dtype), ()) for name, dtype in _REC_INT.items()),
+                    *(text(name) for name in _REC_STR)],
+        "failures": [text(name) for name in _FAIL_STR],
+        "references": [("energy", np.dtype(np.float64), ()),
+                       *(text(name) for name in _REF_STR)],
+    }
+
+
 def _create_layout(f: h5py.File, chunk_scale: float = 1.0, precision: str = "float64",
                    compress: bool = False) -> None:
-    """Empty groups and datasets; ``chunk_scale`` < 1 makes small files (e.g. shards) compact;
-    ``precision`` is the per-particle columns' float type, ``compress`` adds gzip + shuffle."""
+    """Empty groups and datasets of the appendable layout; ``chunk_scale`` < 1 makes small
+    files compact; ``precision`` is the per-particle columns' float type, ``compress`` adds
+    gzip + shuffle."""
     f.attrs["format"] = FORMAT
     f.attrs["format_version"] = FORMAT_VERSION
     f.attrs["precision"] = precision
-    filters = {"compression": "gzip", "compression_opts": 6, "shuffle": True} if compress else {}
+    filters = _GZIP if compress else {}
     for key, unit in UNITS.items():
         f.attrs[f"unit_{key}"] = unit
     for name in ("n_records", "n_cores", "n_pairs", "n_failures", "n_references"):
         f.attrs[name] = 0
-
-    def make(group: h5py.Group, name: str, shape: tuple[int, ...], dtype: DTypeLike,
-             chunk: int = 1024):
-        chunk = max(4, int(chunk * chunk_scale))
-        group.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype,
-                             chunks=(chunk, *shape), **filters)
-
-    per_particle = np.dtype(precision)
-    cores, pairs = f.create_group("cores"), f.create_group("pairs")
-    make(cores, "numbers", (), np.int16, 4096)
-    make(cores, "positions", (3,), per_particle, 4096)
-    make(cores, "forces", (3,), per_particle, 4096)
-    make(pairs, "positions", (3,), per_particle, 4096)
-    make(pairs, "forces", (3,), per_particle, 4096)
-    rec = f.create_group("records")
-    for name, shape in (*_REC_FLOAT.items(), *_REC_OPTIONAL.items()):
-        make(rec, name, shape, np.float64)
-    for name, dtype in _REC_INT.items():
-        make(rec, name, (), dtype)
-    for name in _REC_STR:
-        make(rec, name, (), f"S{_STR_LEN[name]}")
-    fail = f.create_group("failures")
-    for name in _FAIL_STR:
-        make(fail, name, (), f"S{_STR_LEN[name]}", 256)
-    ref = f.create_group("references")
-    make(ref, "energy", (), np.float64, 64)
-    for name in _REF_STR:
-        make(ref, name, (), f"S{_STR_LEN[name]}", 64)
+    for group_name, fields in _schema(precision).items():
+        group = f.create_group(group_name)
+        chunk = max(4, int(_CHUNK_ROWS[group_name] * chunk_scale))
+        for name, dtype, shape in fields:
+            group.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape),
+                                 dtype=dtype, chunks=(chunk, *shape), **filters)
 
 
-def _present(group: h5py.Group, optional: dict) -> tuple[str, ...]:
-    """The optional columns ``optional`` that ``group`` has."""
-    return tuple(name for name in optional if name in group)
+def _check_keys(keys: list[str], stored: set[str], path: Path) -> None:
+    """Raise :class:`StoreError` unless ``keys`` are non-empty, unique, and not in
+    ``stored``."""
+    existing = set(stored)
+    for k in keys:
+        if not k:
+            raise StoreError(f"{path}: every record needs a non-empty key")
+        if k in existing:
+            raise StoreError(f"{path}: a record with key {k!r} is already stored")
+        existing.add(k)
+
+
+def _columns(structures: list[Structure], keys: list[str]) -> tuple[dict, dict, dict]:
+    """The rows of ``structures`` as ``(cores, pairs, records)`` columns (``core_start`` and
+    ``pair_start`` counted from 0; ``polarizability`` NaN where unlabelled)."""
+    nan3 = np.full((3, 3), np.nan)
+
+    def stack(values: list, shape: tuple[int, ...]) -> np.ndarray:
+        return np.concatenate(values).reshape(-1, *shape) if values else np.zeros((0, *shape))
+
+    def labels(attr: str, n_of: str) -> list:
+        return [np.full((getattr(s, n_of), 3), np.nan) if getattr(s, attr) is None
+                else getattr(s, attr) for s in structures]
+
+    core_len = np.array([s.n_cores for s in structures], dtype=np.int64)
+    pair_len = np.array([s.n_pairs for s in structures], dtype=np.int64)
+    cores = {
+        "numbers": stack([s.numbers for s in structures], ()).astype(np.int16),
+        "positions": stack([s.positions for s in structures], (3,)),
+        "forces": stack(labels("forces", "n_cores"), (3,)),
+    }
+    pairs = {
+        "positions": stack([s.pairs for s in structures], (3,)),
+        "forces": stack(labels("pair_forces", "n_pairs"), (3,)),
+    }
+    recs = {
+        "core_start": np.cumsum(core_len) - core_len, "n_cores": core_len,
+        "pair_start": np.cumsum(pair_len) - pair_len, "n_pairs": pair_len,
+        "pbc": [s.pbc for s in structures],
+        "energy": [np.nan if s.energy is None else s.energy for s in structures],
+        "field": [s.field for s in structures],
+        "cell": [s.cell for s in structures],
+        "charge": [s.charge for s in structures],
+        "stress": [nan3 if s.stress is None else s.stress for s in structures],
+        "wall_time": [float(s.info.get("wall_time", np.nan)) for s in structures],
+        "polarizability": [nan3 if s.polarizability is None else s.polarizability
+                           for s in structures],
+        "molecule_id": [str(s.info.get("molecule_id", "")) for s in structures],
+        "kind": [str(s.info.get("kind", "")) for s in structures],
+        "level": [str(s.info.get("level", "")) for s in structures],
+        "key": keys,
+    }
+    return cores, pairs, recs
+
+
+def _table(columns: dict, fields: list[tuple[str, np.dtype, tuple[int, ...]]]) -> np.ndarray:
+    """``columns`` as one structured array with ``fields`` (a packed-layout table)."""
+    n = len(columns[fields[0][0]])
+    out = np.zeros(n, dtype=[(name, dtype, shape) for name, dtype, shape in fields])
+    for name, dtype, shape in fields:
+        out[name] = _as_column(columns[name], dtype, name).reshape(n, *shape)
+    return out
+
+
+def _put_table(f: h5py.File, name: str, table: np.ndarray, compress: bool) -> None:
+    """Write ``table`` as the fixed-size dataset ``name``: contiguous, or in chunks of at most
+    :data:`_PACKED_CHUNK_BYTES` with gzip + shuffle when ``compress`` and that pays."""
+    filters: dict = {}
+    if compress and _gzip_pays(table):
+        rows = max(1, min(len(table), _PACKED_CHUNK_BYTES // table.dtype.itemsize))
+        filters = {"chunks": (rows,), **_GZIP}
+    f.create_dataset(name, data=table, **filters)
+
+
+def _gzip_pays(table: np.ndarray) -> bool:
+    """True when gzip + shuffle (estimated with zlib on the shuffled bytes) saves more than
+    the :data:`_FILTER_BYTES` a filtered dataset costs."""
+    raw = table.tobytes()
+    if not raw:
+        return False
+    shuffled = np.frombuffer(raw, np.uint8).reshape(len(table), -1).T.tobytes()
+    return len(zlib.compress(shuffled, _GZIP["compression_opts"])) + _FILTER_BYTES < len(raw)
+
+
+def _format_version(path: Path) -> int:
+    """The ``format_version`` attribute of the HDF5 file ``path`` (-1 when unreadable)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r", locking=False) as f:
+            return int(f.attrs.get("format_version", -1))
+    except OSError:
+        return -1
 
 
 def _add_optional_column(records: h5py.Group, name: str, n_rows: int) -> None:
@@ -523,13 +714,18 @@ def _add_optional_column(records: h5py.Group, name: str, n_rows: int) -> None:
 def _write_rows(group: h5py.Group, columns: dict, start: int) -> None:
     for name, values in columns.items():
         ds = group[name]
-        if ds.dtype.kind == "S":
-            values = [_encode(v, ds.dtype.itemsize, name) for v in values]
-        values = np.asarray(values, dtype=ds.dtype)
+        values = _as_column(values, ds.dtype, name)
         if len(values) == 0:
             continue
         ds.resize(start + len(values), axis=0)
         ds[start:start + len(values)] = values
+
+
+def _as_column(values: Iterable, dtype: np.dtype, name: str) -> np.ndarray:
+    """``values`` as an array of ``dtype`` (text as UTF-8, cut to the column's length)."""
+    if dtype.kind == "S":
+        values = [_encode(v, dtype.itemsize, name) for v in values]
+    return np.asarray(values, dtype=dtype)
 
 
 def _encode(value: str, size: int, name: str) -> bytes:

@@ -3,8 +3,10 @@
 ``emlp campaign init FOLDER --smiles qm7_smiles.csv`` fixes the molecule list, its seed and the
 split (``molecules.csv``) and the recipe (``campaign.yaml``) before any label exists.
 ``emlp campaign run FOLDER`` labels with :func:`emlpack.qm.labeling.run_labeling` into a working
-store (``FOLDER/work/``, not committed) and moves the finished records every few minutes into a
-new shard ``FOLDER/shards/NNNN.h5`` (temporary file, then rename; never rewritten), with the
+store (``FOLDER/work/``, not committed) and moves the finished records every few minutes (once
+there are enough of them) into a new shard ``FOLDER/shards/NNNN.h5``, written in one go in the
+packed layout (:func:`emlpack.data.store.write_packed`; temporary file, then rename; never
+rewritten), with the
 prepared molecules in ``FOLDER/prepared/`` and the card ``FOLDER/README.md`` regenerated from
 the shards. With ``commit=True`` each new shard is committed to git at once, so a session that
 ends without warning loses at most the configurations in flight. A re-run on any machine
@@ -31,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from emlpack._files import atomic_path, write_text_atomic
+from emlpack._files import write_text_atomic
 from emlpack.commits import git_commit
 from emlpack.data.shards import (
     MOLECULES_FILE,
@@ -41,8 +43,9 @@ from emlpack.data.shards import (
     read_molecule_table,
     read_shards,
     shard_paths,
+    shards_size_text,
 )
-from emlpack.data.store import DatasetStore, StoreError
+from emlpack.data.store import DatasetStore, StoreError, write_packed
 from emlpack.interrupts import terminate_as_interrupt
 from emlpack.optional import import_optional
 from emlpack.qm.levels import PAPER, parse_level
@@ -57,6 +60,13 @@ from emlpack.qm.sampling import SamplingError
 log = logging.getLogger(__name__)
 
 CAMPAIGN_FILE = "campaign.yaml"
+#: how new shards store positions and forces where campaign.yaml's ``storage`` says nothing
+#: (``compress``: gzip where it makes a table smaller; uncompressed float64 records of small
+#: molecules take ~2.3 kB each, over the project's 2 kB per configuration)
+DEFAULT_STORAGE = {"precision": "float64", "compress": True}
+#: fewest new records and failures that make a shard before a run stops (each shard costs
+#: ~2.5 kB of HDF5 headers and attributes, and a commit)
+SHARD_MIN_RECORDS = 10
 #: hand-written measurements (e.g. the level choice) included in the card verbatim
 NOTES_FILE = "notes.md"
 #: a line of ``notes.md`` that the card replaces by a file (a table a script writes elsewhere,
@@ -395,49 +405,64 @@ def load_settings(folder: str | Path) -> dict:
 
 
 # ---------------------------------------------------------------------------------- shards
+def shard_storage(storage: dict | None, folder: str | Path = "") -> dict:
+    """``precision`` and ``compress`` of new shards: campaign.yaml's ``storage`` over
+    :data:`DEFAULT_STORAGE`; unknown settings raise :class:`StoreError` naming ``folder``."""
+    storage = dict(storage or {})
+    unknown = set(storage) - set(DEFAULT_STORAGE)
+    if unknown:
+        raise StoreError(f"{folder}: unknown storage settings {sorted(unknown)}"
+                         f" ({', '.join(DEFAULT_STORAGE)})")
+    return {**DEFAULT_STORAGE, **storage}
+
+
+def unexported(folder: str | Path, store: DatasetStore) -> tuple[list[int], list[dict]]:
+    """What of ``store`` no shard of ``folder`` holds: the indices of its records, and its
+    failures that no shard records and no record of ``store`` resolves."""
+    labeled: set[str] = set()
+    failed: set[str] = set()
+    for path in shard_paths(folder):
+        with DatasetStore(path, "r") as shard:
+            labeled |= set(shard.keys())  # a retried failure's label is new
+            failed |= {f["key"] for f in shard.failures()}
+    keys = store.keys()
+    stored = set(keys)
+    new_idx = [i for i, k in enumerate(keys) if k not in labeled]
+    new_fail = [f for f in store.failures()
+                if f["key"] not in labeled and f["key"] not in failed and f["key"] not in stored]
+    return new_idx, new_fail
+
+
 def export_shard(folder: str | Path, store: DatasetStore, run_info: dict,
                  storage: dict | None = None) -> Path | None:
     """Move the records and failures of ``store`` that no shard holds into a new shard.
 
-    Returns the new shard's path (``None`` when there is nothing new). The shard is written
-    under a temporary name and renamed, so a shard file is always complete. ``storage``:
-    ``precision`` (``float64``, ``float32``) and ``compress`` of the shard file
-    (:class:`DatasetStore`; campaign.yaml's ``storage``), default float64 uncompressed.
+    Returns the new shard's path (``None`` when there is nothing new). The shard is written in
+    one go in the packed layout (:func:`~emlpack.data.store.write_packed`) under a temporary
+    name and renamed, so a shard file is always complete. ``storage``: ``precision``
+    (``float64``, ``float32``) and ``compress`` of the shard file (campaign.yaml's
+    ``storage``, over :data:`DEFAULT_STORAGE`).
     """
-    storage = dict(storage or {})
-    unknown = set(storage) - {"precision", "compress"}
-    if unknown:
-        raise StoreError(f"{folder}: unknown storage settings {sorted(unknown)}"
-                         " (precision, compress)")
+    storage = shard_storage(storage, folder)
     folder = Path(folder)
-    have = finished_keys(folder)
-    labeled = finished_keys(folder, failures=False)  # a retried failure's label is new
-    keys = store.keys()
-    new_idx = [i for i, k in enumerate(keys) if k not in labeled]
-    new_fail = [f for f in store.failures() if f["key"] not in have and f["key"] not in keys]
+    new_idx, new_fail = unexported(folder, store)
     if not new_idx and not new_fail:
         return None
     paths = shard_paths(folder)
     number = int(paths[-1].stem) + 1 if paths else 0
     final = folder / SHARD_DIR / f"{number:04d}.h5"
     refs = store.references()
-    with atomic_path(final) as tmp:
-        with DatasetStore(tmp, "a", compact=True, **storage) as shard:
-            shard.append([store.structure(i) for i in new_idx])
-            shard.add_failures(new_fail)
-            for i in new_idx:
-                s = store.structure(i)
-                if s.info.get("kind") == "hydride" and s.info["molecule_id"] in refs:
-                    ref = refs[s.info["molecule_id"]]
-                    shard.set_reference(s.info["molecule_id"], ref["energy"], ref["level"])
-            shard.set_metadata(**{f"run_{k}": v for k, v in run_info.items()},
-                               recipe=store.metadata.get("recipe", ""))
-        Path(str(tmp) + ".lock").unlink(missing_ok=True)
-    return final
+    structures = [store.structure(i) for i in new_idx]
+    references = {s.info["molecule_id"]: refs[s.info["molecule_id"]] for s in structures
+                  if s.info.get("kind") == "hydride" and s.info["molecule_id"] in refs}
+    metadata = {**{f"run_{k}": v for k, v in run_info.items()},
+                "recipe": store.metadata.get("recipe", "")}
+    return write_packed(final, structures, new_fail, references, metadata, **storage)
 
 
 def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = None,
                  hours: float | None = None, shard_minutes: float = 20.0,
+                 shard_min_records: int = SHARD_MIN_RECORDS,
                  commit: bool = False, progress: bool = True,
                  retry_failed: bool = False, past_target: bool = False) -> dict:
     """Label the campaign's molecules in order, into new shards every ``shard_minutes``,
@@ -447,7 +472,11 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
         workers: labeling processes (0: in this process).
         threads: OpenMP threads per process (default: CPU count / workers).
         hours: stop after this wall time (finished labels are kept); None: until done.
-        shard_minutes: how often finished labels become a shard (and a commit).
+        shard_minutes: how often finished labels become a shard (and a commit), once there
+            are ``shard_min_records`` new records and failures; when the run stops (``hours``,
+            the end of the list, Ctrl-C, SIGTERM) whatever is left becomes a last shard.
+        shard_min_records: fewest new records and failures that make a shard before then
+            (fewer, larger shards: each costs ~2.5 kB of HDF5 headers and a commit).
         commit: commit each new shard, the prepared molecules and the card to git.
         retry_failed: label the keys of recorded failures again (their failure records stay
             in their shards; a key that fails again is not recorded twice, one labeled now
@@ -485,8 +514,9 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
     run = {"host": socket.gethostname(), "cpus": os.cpu_count() or 1, "workers": workers,
            "threads": threads or max(1, (os.cpu_count() or 1) // max(workers, 1))}
     log.info("campaign %s: %d molecules, %d keys finished in shards; %s; hours %s, shards every"
-             " %g min, commit %s; level %s", folder, len(molecules), len(done), run, hours,
-             shard_minutes, commit, recipe.get("level"))
+             " %g min of at least %d records, commit %s; level %s", folder, len(molecules),
+             len(done), run, hours, shard_minutes, shard_min_records, commit,
+             recipe.get("level"))
 
     def flush(store: DatasetStore) -> None:
         now = time.time()
@@ -504,7 +534,8 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
 
     def on_stored(store: DatasetStore) -> bool:
         over = hours is not None and time.time() - t0 > hours * 3600.0
-        if over or time.monotonic() - state["last"] > shard_minutes * 60.0:
+        due = time.monotonic() - state["last"] > shard_minutes * 60.0
+        if over or (due and sum(map(len, unexported(folder, store))) >= shard_min_records):
             state["last"] = time.monotonic()
             flush(store)
         return over
@@ -735,18 +766,15 @@ def write_card(folder: str | Path) -> Path:
     ]
     for k, v in stats["seconds_per_configuration_by_atoms"].items():
         lines.append(f"| {k} | {v['n']} | {v['median']:.0f} |")
-    size = sum(p.stat().st_size for p in shard_paths(folder))
-    per = size / stats["n_configurations"] if stats["n_configurations"] else 0.0
-    storage = settings.get("storage") or {}
+    storage = shard_storage(settings.get("storage"), folder)
     notes = folder / NOTES_FILE
     if notes.is_file():  # measurements written by hand (level choice, pilot), kept verbatim
         lines += ["", notes_text(folder)]
     lines += ["", "## Files", "",
               f"`{CAMPAIGN_FILE}` settings and recipe; `{MOLECULES_FILE}` the list and split;",
               f"`{SHARD_DIR}/NNNN.h5` labels (emlpack HDF5 stores, never rewritten;"
-              f" {size / 1e6:.1f} MB, {per / 1e3:.1f} kB per configuration; positions and"
-              f" forces {storage.get('precision', 'float64')}"
-              f"{', gzip-compressed' if storage.get('compress') else ''});",
+              f" {shards_size_text(folder)}; new shards: {storage['precision']} positions and"
+              f" forces{', gzip' if storage['compress'] else ''}, packed layout);",
               "`prepared/NAME.npz` the prepared geometry and Hessian of each molecule"
               + (f"; `{NOTES_FILE}` the notes above." if notes.is_file() else "."), ""]
     path = folder / "README.md"
