@@ -470,8 +470,8 @@ def test_bad_pretrain_or_pilot_config_is_one_line(tmp_path):
 def test_the_shipped_bakeoff_has_the_pilot_after_painn_f64():
     """bakeoff.yaml: schnet-pretrained after v1-schnet and painn-f64 (the running bake-off's
     first two keep their order), pretrained on the cheap set for 60 of the 120 CPU minutes
-    once it holds 2000 configurations (the first pilot), fine-tuned for the rest; the pilot compares it with
-    v1-schnet into examples/qm7_cheap."""
+    once it holds 2000 configurations (the first pilot), fine-tuned for the rest; the pilot
+    compares it with v1-schnet into examples/qm7_cheap."""
     mod = example_module("bakeoff")
     bake = mod.load_bakeoff()
     assert list(bake["candidates"]) == ["v1-schnet", "painn-f64", "schnet-pretrained",
