@@ -50,7 +50,7 @@ from emlpack.data.shards import (
     read_molecule_table,
     read_shards,
 )
-from emlpack.qm.campaign import EXCLUDED_ROWS, graph_key, held_out_graphs
+from emlpack.qm.campaign import excluded_graphs, graph_key
 from emlpack.qm.finite_field import finite_field_response
 from emlpack.qm.levels import PAPER, parse_level
 from emlpack.qm.pyscf_labeler import PySCFLabeler
@@ -66,15 +66,8 @@ SMOKE_LEVEL = "pbe0/6-31g*"
 
 def banned_graphs(data: Path = DATA, smiles_csv: Path = QM7_SMILES) -> dict[str, str]:
     """Molecular graphs never labelled here, with the reason: the validation and test
-    molecules of ``data`` and the IR molecules (:func:`held_out_graphs`), QM7 rows 0-9."""
-    import csv
-
-    out = held_out_graphs([data])
-    with Path(smiles_csv).open() as fh:
-        rows = list(csv.DictReader(fh))
-    for i, why in EXCLUDED_ROWS.items():
-        out.setdefault(graph_key(rows[i]["smiles"]), f"QM7 row {i} ({why})")
-    return out
+    molecules of ``data``, the IR molecules and QM7 rows 0-9 (:func:`excluded_graphs`)."""
+    return excluded_graphs(data, smiles_csv)
 
 
 def _rank(key: str, seed: int) -> str:

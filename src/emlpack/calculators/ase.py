@@ -24,10 +24,12 @@ trained, hydride-relative energy and ``model_energy`` the network's raw output),
 cores (eV/Å; at relaxed pairs these are the Born-Oppenheimer forces), ``stress`` (periodic, eV/Å^3,
 Voigt, ASE sign), ``dipole`` (molecules: sum q r over cores and pairs, e·Å),
 ``electron_pairs`` (Å), ``pair_forces`` (eV/Å), and ``energy_std``, ``forces_std``,
-``dipole_std``, ``stress_std``. Relaxation diagnostics are in ``calc.relax_result`` (the first
-member's) and ``calc.relax_results`` (one per member relaxed in the last call). A failed
-relaxation (the solver's reason, or pairs not at a minimum: a smallest pair curvature the
-solver measured at or below ``-FLAT_CURVATURE``, whatever the solver said) raises
+``electron_pairs_std`` (Å; each member relaxes its own pairs from the same start, so pair k is
+the same pair in every member), ``dipole_std``, ``stress_std``. Relaxation diagnostics are in
+``calc.relax_result`` (the first member's) and ``calc.relax_results`` (one per member relaxed
+in the last call). A failed relaxation (the solver's reason, or pairs not at a minimum: a
+smallest pair curvature the solver measured at or below ``-FLAT_CURVATURE``, whatever the
+solver said) raises
 :class:`ase.calculators.calculator.CalculationFailed` naming the reason; with
 ``failed_members="drop"`` an ensemble instead leaves the failed member out, of this result and
 of every later one of the same molecule (``calc.dropped``: member index -> reason), so that the
@@ -106,6 +108,7 @@ class EMLPCalculator(Calculator):
         "pair_forces",
         "energy_std",
         "forces_std",
+        "electron_pairs_std",
         "dipole_std",
         "stress_std",
         "energy_relative",
@@ -318,6 +321,7 @@ class EMLPCalculator(Calculator):
             "pair_forces": np.mean([o["pair_forces"] for o in outs], axis=0),
             "energy_std": float(np.std(energies)),
             "forces_std": forces.std(axis=0),
+            "electron_pairs_std": np.std(pairs_of, axis=0),
             "model_energy": float(np.mean(raw)),
         }
         if self.ensemble.dft_scale:

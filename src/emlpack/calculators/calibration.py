@@ -30,6 +30,18 @@ from emlpack.structure import Structure
 SPREAD_KEYS = ("energy_spread", "energy_error", "force_spread", "force_error")
 
 
+def result_spread(results: dict, n_atoms: int) -> dict[str, float]:
+    """The spread measures of one :class:`EMLPCalculator` ensemble result (its ``*_std``
+    entries, population std over the members): ``energy_spread`` (eV/atom), ``force_spread``
+    (largest spread of a core-force component, eV/Å) and ``pair_spread`` (largest spread of an
+    electron-pair coordinate, Å; NaN without ``electron_pairs_std``): the measures the
+    warnings, the calibration and active learning's selection read."""
+    pairs = results.get("electron_pairs_std")
+    return {"energy_spread": float(results["energy_std"]) / max(int(n_atoms), 1),
+            "force_spread": float(np.max(results["forces_std"], initial=0.0)),
+            "pair_spread": float("nan") if pairs is None else float(np.max(pairs, initial=0.0))}
+
+
 def spread_and_error(ensemble: ModelEnsemble, structures: Sequence[Structure],
                      relax_pairs: bool = True) -> dict:
     """Per configuration: the ensemble's energy spread and absolute error per atom (eV/atom),
@@ -52,9 +64,10 @@ def spread_and_error(ensemble: ModelEnsemble, structures: Sequence[Structure],
                 failed.append(k)
                 continue
             n = len(atoms)
-            out["energy_spread"].append(atoms.calc.results["energy_std"] / n)
+            spread = result_spread(atoms.calc.results, n)
+            out["energy_spread"].append(spread["energy_spread"])
             out["energy_error"].append(abs(energy - s.energy) / n)
-            out["force_spread"].append(float(np.max(atoms.calc.results["forces_std"])))
+            out["force_spread"].append(spread["force_spread"])
             out["force_error"].append(float(np.max(np.abs(atoms.get_forces() - s.forces))))
     finally:
         calculator_log.setLevel(level)

@@ -9,6 +9,11 @@ Layout of a data-set folder (see :mod:`emlpack.qm.campaign`, which writes it)::
                        per shard, never rewritten once committed (written in the packed
                        layout, :func:`~emlpack.data.store.write_packed`; the earlier ones in
                        the appendable layout: both read alike)
+    shards/al-NNNN.h5  optional: labels of configurations picked by active learning (MD of
+                       the models, ``examples/eqm7/active_learning.py``), training molecules
+                       only, the same level and card; a part of its own, numbered on its own
+    active-learning/   optional: the selections those labels were made from (extxyz with the
+                       provenance of every configuration), never rewritten
     prepared/NAME.npz  the cheap-level geometry and Hessian each molecule was sampled from
     polarizability/KEY.json
                        optional: a DFT polarizability label of one stored configuration
@@ -16,7 +21,9 @@ Layout of a data-set folder (see :mod:`emlpack.qm.campaign`, which writes it)::
 
 :func:`read_shards` reads every shard as one data set, with the split taken from
 ``molecules.csv`` (by molecule), so the split never depends on which labels are finished,
-and attaches the polarizability labels to their configurations.
+and attaches the polarizability labels to their configurations. Shards come in parts
+(:data:`SHARD_PARTS`): the campaign's own (``NNNN.h5``), then active learning's
+(``al-NNNN.h5``); a reader takes every part, the campaign's target and counts its own.
 """
 
 from __future__ import annotations
@@ -42,6 +49,14 @@ MOLECULES_FILE = "molecules.csv"
 SHARD_DIR = "shards"
 #: folder of the polarizability labels, one ``<key>.json`` per configuration
 POLARIZABILITY_DIR = "polarizability"
+#: the campaign's own shards (``shards/NNNN.h5``)
+CAMPAIGN_PART = ""
+#: shards labeled from active learning's selections (``shards/al-NNNN.h5``)
+ACTIVE_LEARNING_PART = "al-"
+#: the shard parts of a data set, in reading order (each numbered on its own)
+SHARD_PARTS = (CAMPAIGN_PART, ACTIVE_LEARNING_PART)
+#: folder of active learning's selections (the provenance of the ``al-`` shards)
+ACTIVE_LEARNING_DIR = "active-learning"
 #: a label's cores must sit where its record's do, within this (Å)
 LABEL_POSITION_TOLERANCE = 1e-6
 
@@ -103,17 +118,24 @@ def read_molecule_table(folder: str | Path) -> list[dict]:
     return rows
 
 
-def shard_paths(folder: str | Path) -> list[Path]:
-    """The shard files of ``folder`` in order (``shards/NNNN.h5``)."""
-    return sorted((Path(folder) / SHARD_DIR).glob("[0-9][0-9][0-9][0-9].h5"))
+def shard_paths(folder: str | Path, part: str | None = None) -> list[Path]:
+    """The shard files of ``folder`` in order: of one ``part`` of :data:`SHARD_PARTS`
+    (``shards/PARTNNNN.h5``), or of every part (None: the campaign's, then active
+    learning's)."""
+    if part is not None and part not in SHARD_PARTS:
+        raise StoreError(f"unknown shard part {part!r} (one of {SHARD_PARTS})")
+    parts = SHARD_PARTS if part is None else (part,)
+    return [path for p in parts
+            for path in sorted((Path(folder) / SHARD_DIR).glob(f"{p}[0-9][0-9][0-9][0-9].h5"))]
 
 
 def shards_size_text(folder: str | Path) -> str:
     """The data-set card's words on the shards of ``folder``, measured from the files: their
     size, bytes per stored configuration (hydride references included) and, per run of
-    consecutive shards stored alike, the positions' and forces' type, compression and layout,
-    e.g. ``"2.1 MB, 1.4 kB per configuration; shards 0000-0157: float64 positions and forces,
-    appendable layout; shards 0158-0160: float64 positions and forces, gzip, packed layout"``.
+    consecutive shards of one part stored alike, the positions' and forces' type, compression
+    and layout, e.g. ``"2.1 MB, 1.4 kB per configuration; shards 0000-0157: float64 positions
+    and forces, appendable layout; shards 0158-0160: float64 positions and forces, gzip, packed
+    layout"``.
     """
     paths = shard_paths(folder)
     size = sum(p.stat().st_size for p in paths)
@@ -126,7 +148,7 @@ def shards_size_text(folder: str | Path) -> str:
         text = (f"{how['precision']} positions and forces{', gzip' if how['compress'] else ''},"
                 f" {'packed' if how['format_version'] == PACKED_VERSION else 'appendable'}"
                 " layout")
-        if runs and runs[-1][2] == text:
+        if runs and runs[-1][2] == text and runs[-1][0][:-4] == path.stem[:-4]:  # one part
             runs[-1][1] = path.stem
         else:
             runs.append([path.stem, path.stem, text])
@@ -207,11 +229,12 @@ def read_shards(folder: str | Path, shards: Sequence[str] | None = None) -> Shar
     return ShardedData(structures, hydrides, molecules, split_of, failures, paths, metadata)
 
 
-def finished_keys(folder: str | Path, failures: bool = True) -> set[str]:
+def finished_keys(folder: str | Path, failures: bool = True,
+                  part: str | None = None) -> set[str]:
     """Keys of every record (and, with ``failures``, every recorded failure) in the shards of
-    ``folder``."""
+    ``folder`` (of one ``part``, or of all: :func:`shard_paths`)."""
     keys: set[str] = set()
-    for path in shard_paths(folder):
+    for path in shard_paths(folder, part):
         with DatasetStore(path, "r") as store:
             keys |= store.done_keys() if failures else set(store.keys())
     return keys

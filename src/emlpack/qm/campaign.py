@@ -36,9 +36,14 @@ import yaml
 from emlpack._files import write_text_atomic
 from emlpack.commits import git_commit
 from emlpack.data.shards import (
+    ACTIVE_LEARNING_DIR,
+    ACTIVE_LEARNING_PART,
+    CAMPAIGN_PART,
     MOLECULES_FILE,
     SHARD_DIR,
+    SHARD_PARTS,
     SPLITS,
+    ShardedData,
     finished_keys,
     read_molecule_table,
     read_shards,
@@ -51,11 +56,13 @@ from emlpack.optional import import_optional
 from emlpack.qm.levels import PAPER, parse_level
 from emlpack.qm.recipe import (
     LEGACY_FIELD_DISTRIBUTION,
+    Configuration,
     default_recipe,
     rescale_counts,
     validate_recipe,
 )
 from emlpack.qm.sampling import SamplingError
+from emlpack.structure import Structure
 
 log = logging.getLogger(__name__)
 
@@ -188,6 +195,19 @@ def held_out_graphs(folders: list[str | Path]) -> dict[str, str]:
             if m["split"] != "train":
                 out.setdefault(graph_key(m["smiles"]), f"{m['split']} molecule {m['name']}"
                                f" of {Path(folder).name}")
+    return out
+
+
+def excluded_graphs(folder: str | Path, smiles_csv: str | Path) -> dict[str, str]:
+    """Graphs (:func:`graph_key`) that are never labeled for training in the campaign of
+    ``folder``, with the reason: its validation and test molecules and the IR molecules
+    (:func:`held_out_graphs`), and QM7 rows 0-9 of ``smiles_csv`` (:data:`EXCLUDED_ROWS`: the
+    authors' molecules and the reserved ones)."""
+    out = held_out_graphs([folder])
+    with Path(smiles_csv).open() as fh:
+        rows = list(csv.DictReader(fh))
+    for i, why in EXCLUDED_ROWS.items():
+        out.setdefault(graph_key(rows[i]["smiles"]), f"QM7 row {i} ({why})")
     return out
 
 
@@ -325,8 +345,9 @@ def campaign_target(folder: str | Path, settings: dict | None = None,
     """:func:`target_prefix` of a campaign folder, from its settings and shards."""
     settings = settings or load_settings(folder)
     molecules = molecules if molecules is not None else read_molecule_table(folder)
-    labeled = Counter(k.split("/")[0] for k in finished_keys(folder, failures=False))
-    done = Counter(k.split("/")[0] for k in finished_keys(folder, failures=True))
+    # the campaign's own labels (active learning's are not the target's)
+    labeled = Counter(k.split("/")[0] for k in finished_keys(folder, False, CAMPAIGN_PART))
+    done = Counter(k.split("/")[0] for k in finished_keys(folder, True, CAMPAIGN_PART))
     return target_prefix(campaign_order(settings, molecules), settings.get("target"),
                          samples_per_molecule(settings["recipe"]), labeled, done)
 
@@ -434,23 +455,25 @@ def unexported(folder: str | Path, store: DatasetStore) -> tuple[list[int], list
 
 
 def export_shard(folder: str | Path, store: DatasetStore, run_info: dict,
-                 storage: dict | None = None) -> Path | None:
+                 storage: dict | None = None, part: str = CAMPAIGN_PART) -> Path | None:
     """Move the records and failures of ``store`` that no shard holds into a new shard.
 
-    Returns the new shard's path (``None`` when there is nothing new). The shard is written in
-    one go in the packed layout (:func:`~emlpack.data.store.write_packed`) under a temporary
-    name and renamed, so a shard file is always complete. ``storage``: ``precision``
-    (``float64``, ``float32``) and ``compress`` of the shard file (campaign.yaml's
-    ``storage``, over :data:`DEFAULT_STORAGE`).
+    Returns the new shard's path (``None`` when there is nothing new): the next number of
+    ``part`` (:data:`~emlpack.data.shards.SHARD_PARTS`: ``shards/NNNN.h5`` for the campaign,
+    ``shards/al-NNNN.h5`` for active learning). The shard is written in one go in the packed
+    layout (:func:`~emlpack.data.store.write_packed`) under a temporary name and renamed, so a
+    shard file is always complete. ``storage``: ``precision`` (``float64``, ``float32``) and
+    ``compress`` of the shard file (campaign.yaml's ``storage``, over
+    :data:`DEFAULT_STORAGE`).
     """
     storage = shard_storage(storage, folder)
     folder = Path(folder)
     new_idx, new_fail = unexported(folder, store)
     if not new_idx and not new_fail:
         return None
-    paths = shard_paths(folder)
-    number = int(paths[-1].stem) + 1 if paths else 0
-    final = folder / SHARD_DIR / f"{number:04d}.h5"
+    paths = shard_paths(folder, part)
+    number = int(paths[-1].stem[len(part):]) + 1 if paths else 0
+    final = folder / SHARD_DIR / f"{part}{number:04d}.h5"
     refs = store.references()
     structures = [store.structure(i) for i in new_idx]
     references = {s.info["molecule_id"]: refs[s.info["molecule_id"]] for s in structures
@@ -568,31 +591,122 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
             "target": campaign_target(folder, settings, molecules)[1]}
 
 
+def label_part(folder: str | Path, configs: list[Configuration], part: str,
+               source: str, workers: int = 0, threads: int | None = None,
+               hours: float | None = None, shard_minutes: float = 20.0,
+               commit: bool = False, commit_paths: list[Path] = (),
+               progress: bool = True) -> dict:
+    """Label given configurations into a part of the campaign's data set: shards
+    ``shards/PARTNNNN.h5`` (:func:`export_shard`) at the campaign's level and Foster-Boys
+    starts (``campaign.yaml``'s recipe), with the card regenerated.
+
+    Each configuration's key is ``MOLECULE/KIND/NNNN``, its molecule a row of
+    ``molecules.csv``. Labels go into a working store ``work/PART-HOST-HASH.h5`` (not
+    committed) through :func:`emlpack.qm.labeling.label_configurations` and become a new shard
+    every ``shard_minutes`` and at the end (also on Ctrl-C or SIGTERM), each committed with
+    ``commit`` (with ``commit_paths``, e.g. the selection the configurations come from); keys
+    that a shard of any part holds are skipped, so a re-run on any machine resumes. ``source``
+    (e.g. the selection files) is stored in the shards' metadata. ``hours``: stop after this
+    wall time (finished labels kept). Returns a summary (new records, failures, shards, wall
+    time).
+    """
+    from emlpack.qm.labeling import label_configurations
+
+    folder = Path(folder)
+    if part not in SHARD_PARTS or part == CAMPAIGN_PART:
+        raise StoreError(f"{folder}: shard part {part!r}: one of {SHARD_PARTS[1:]} (the"
+                         " campaign labels its own)")
+    settings = load_settings(folder)
+    names = {m["name"] for m in read_molecule_table(folder)}
+    unknown = sorted({c.molecule_id for c in configs} - names)
+    if unknown:
+        raise StoreError(f"{folder}: molecules {unknown[:5]} are not in {MOLECULES_FILE}")
+    recipe = settings["recipe"]
+    label = {"level": parse_level(recipe["level"]).name,
+             "boys_starts": int(recipe.get("boys_starts", 3)), "seed": int(recipe.get("seed", 0))}
+    digest = hashlib.sha1(yaml.safe_dump(dict(label, part=part), sort_keys=True).encode()
+                          ).hexdigest()[:8]
+    work = folder / "work" / f"{part}{socket.gethostname()}-{digest}.h5"
+    work.parent.mkdir(parents=True, exist_ok=True)
+    for tmp in (folder / SHARD_DIR).glob(".*.tmp*"):
+        if time.time() - tmp.stat().st_mtime > 3600:
+            tmp.unlink()  # left by a run killed while writing (never a finished file)
+    t0 = time.time()
+    state = {"last": time.monotonic(), "shards": [], "since": time.time()}
+    run = {"host": socket.gethostname(), "cpus": os.cpu_count() or 1, "workers": workers,
+           "threads": threads or max(1, (os.cpu_count() or 1) // max(workers, 1))}
+    name = settings.get("name", folder.name)
+
+    def flush(store: DatasetStore) -> None:
+        now = time.time()
+        info = dict(run, started=state["since"], ended=now, wall_s=now - state["since"],
+                    source=source)
+        shard = export_shard(folder, store, info, settings.get("storage"), part=part)
+        if shard is None:
+            return
+        state["since"] = now
+        state["shards"].append(shard)
+        write_card(folder)
+        log.info("%s: wrote %s", folder, shard)
+        if commit:
+            git_commit([folder / SHARD_DIR, folder / "README.md", *commit_paths],
+                       f"{name}: shard {shard.stem}")
+
+    def on_stored(store: DatasetStore) -> bool:
+        over = hours is not None and time.time() - t0 > hours * 3600.0
+        if over or time.monotonic() - state["last"] > shard_minutes * 60.0:
+            state["last"] = time.monotonic()
+            flush(store)
+        return over
+
+    with terminate_as_interrupt():
+        try:
+            summary = label_configurations(
+                configs, work, label["level"], label["boys_starts"], label["seed"],
+                workers=workers, threads=threads, progress=progress,
+                exclude_keys=finished_keys(folder), on_stored=on_stored,
+                metadata={"recipe": yaml.safe_dump(dict(label, part=part, source=source),
+                                                   sort_keys=True)})
+        finally:  # also on Ctrl-C or SIGTERM: the finished labels become a last shard
+            with DatasetStore(work, "a") as store:
+                flush(store)
+    return {"new_records": summary.n_new, "new_failures": summary.n_failed_new,
+            "skipped_done": summary.n_skipped_done,
+            "shards": [str(p) for p in state["shards"]], "wall_s": time.time() - t0}
+
+
 # ---------------------------------------------------------------------------------- card
 def campaign_statistics(folder: str | Path) -> dict:
-    """Counts, failures, wall time and throughput measured from the shards."""
+    """Counts, failures, wall time and throughput measured from the shards: the campaign's
+    own (:data:`~emlpack.data.shards.CAMPAIGN_PART`), and under ``active_learning`` (None
+    without) those of the active-learning part."""
     data = read_shards(folder)
     settings = load_settings(folder)
     per_molecule = samples_per_molecule(settings["recipe"])
+    own = {str(p) for p in shard_paths(folder, CAMPAIGN_PART)}
+    structures = [s for s in data.structures if s.source.rsplit(",", 1)[0] in own]
+    extra = [s for s in data.structures if s.source.rsplit(",", 1)[0] not in own]
+    shard_meta = [(p, m) for p, m in zip(data.shards, data.metadata, strict=True)
+                  if str(p) in own]
     counts = {k: 0 for k in SPLITS}
     configs_of: dict[str, int] = {}
-    for s in data.structures:
+    for s in structures:
         name = str(s.info["molecule_id"])
         configs_of[name] = configs_of.get(name, 0) + 1
         counts[data.split_of.get(name, "train")] += 1
     mols = {k: sum(1 for m in data.molecules if m["split"] == k and m["name"] in configs_of)
             for k in SPLITS}
     complete = sum(1 for v in configs_of.values() if v == per_molecule)
-    wall = sum(float(m.get("run_wall_s", 0.0)) for m in data.metadata)
+    wall = sum(float(m.get("run_wall_s", 0.0)) for _, m in shard_meta)
     # per-configuration cost by size (atoms including the dimer probe)
     by_size: dict[str, list[float]] = {}
-    for s in data.structures:
+    for s in structures:
         n = len(s.numbers)
         bucket = f"{(n - 1) // 5 * 5 + 1}-{(n - 1) // 5 * 5 + 5}"
         by_size.setdefault(bucket, []).append(float(s.info.get("wall_time", np.nan)))
     fields: dict[str, dict] = {}
-    per_shard = Counter(s.source.rsplit(",", 1)[0] for s in data.structures)
-    for path, meta in zip(data.shards, data.metadata, strict=True):
+    per_shard = Counter(s.source.rsplit(",", 1)[0] for s in structures)
+    for path, meta in shard_meta:
         stored = yaml.safe_load(str(meta.get("recipe") or "")) or {}
         name = stored.get("field_distribution", LEGACY_FIELD_DISTRIBUTION)
         entry = fields.setdefault(name, {"configurations": 0, "shards": []})
@@ -600,13 +714,15 @@ def campaign_statistics(folder: str | Path) -> dict:
         entry["shards"].append(path.stem)
     labeled = {str(s.info.get("key", "")) for s in data.structures}
     labeled |= {str(h.info.get("key", "")) for h in (data.hydrides or {}).get("structures", [])}
-    unresolved = [f for f in data.failures if f["key"] not in labeled]
+    extra_keys = finished_keys(folder, True, ACTIVE_LEARNING_PART)
+    failures = [f for f in data.failures if f["key"] not in extra_keys]
+    unresolved = [f for f in failures if f["key"] not in labeled]
     reasons: dict[str, int] = {}
     for f in unresolved:
         reason = f["reason"].split(":")[0][:80]
         reasons[reason] = reasons.get(reason, 0) + 1
     return {
-        "n_configurations": len(data.structures),
+        "n_configurations": len(structures),
         "configurations_by_split": counts,
         "molecules_by_split": mols,
         "molecules_labeled": len(configs_of),
@@ -615,19 +731,66 @@ def campaign_statistics(folder: str | Path) -> dict:
         "hydrides": sorted(h.info["molecule_id"] for h in data.hydrides["structures"])
         if data.hydrides else [],
         "n_failures": len(unresolved),
-        "n_failures_resolved": len(data.failures) - len(unresolved),
+        "n_failures_resolved": len(failures) - len(unresolved),
         "failure_reasons": reasons,
         "field_distributions": fields,
-        "n_shards": len(data.shards),
+        "n_shards": len(shard_meta),
         "wall_hours": wall / 3600.0,
-        "configurations_per_hour": len(data.structures) / (wall / 3600.0) if wall > 0 else None,
+        "configurations_per_hour": len(structures) / (wall / 3600.0) if wall > 0 else None,
         "seconds_per_configuration_by_atoms": {
-            k: {"n": len(v), "median": float(np.nanmedian(v))}
+            k: {"n": len(v), "median": float(np.nanmedian(v)) if np.isfinite(v).any()
+                else float("nan")}
             for k, v in sorted(by_size.items(), key=lambda kv: int(kv[0].split("-")[0]))
         },
         "layouts": sorted({f"{m.get('run_workers')} workers x {m.get('run_threads')} threads"
-                           f" on {m.get('run_cpus')} CPUs" for m in data.metadata}),
+                           f" on {m.get('run_cpus')} CPUs" for _, m in shard_meta}),
+        "active_learning": part_statistics(folder, data, ACTIVE_LEARNING_PART, extra,
+                                           [f for f in data.failures if f["key"] in extra_keys]),
     }
+
+
+def part_statistics(folder: str | Path, data: ShardedData, part: str,
+                    structures: list[Structure], failures: list[dict]) -> dict | None:
+    """The card's counts of one extra shard part (None when it has no shard): its
+    configurations and molecules by split, shards, unresolved failures, labeling wall time,
+    and the selection files in ``FOLDER/active-learning/``."""
+    paths = shard_paths(folder, part)
+    if not paths:
+        return None
+    names = {str(p) for p in paths}
+    meta = [m for p, m in zip(data.shards, data.metadata, strict=True) if str(p) in names]
+    by_split = {k: 0 for k in SPLITS}
+    molecules: set[str] = set()
+    for s in structures:
+        name = str(s.info["molecule_id"])
+        molecules.add(name)
+        by_split[data.split_of.get(name, "train")] += 1
+    labeled = {str(s.info.get("key", "")) for s in structures}
+    return {
+        "n_configurations": len(structures), "molecules": len(molecules),
+        "configurations_by_split": by_split, "shards": [p.name for p in paths],
+        "n_failures": sum(1 for f in failures if f["key"] not in labeled),
+        "wall_hours": sum(float(m.get("run_wall_s", 0.0)) for m in meta) / 3600.0,
+        "selections": sorted(p.name for p in (Path(folder) / ACTIVE_LEARNING_DIR).glob("*.xyz")),
+    }
+
+
+def active_learning_lines(stats: dict | None) -> list[str]:
+    """The card's line on the active-learning part (none without one)."""
+    if not stats:
+        return []
+    held_out = stats["configurations_by_split"]["val"] + stats["configurations_by_split"]["test"]
+    shards = stats["shards"]
+    return [f"- active learning: {stats['n_configurations']} configurations of"
+            f" {stats['molecules']} training molecules"
+            + (f" (and {held_out} of validation or test molecules: an error)" if held_out
+               else "")
+            + f" in {len(shards)} shards (`{SHARD_DIR}/{shards[0]}`-`{shards[-1]}`), picked"
+            " from MD of the models by ensemble spread and by the MD watchdog's failures"
+            f" ({', '.join(f'`{ACTIVE_LEARNING_DIR}/{s}`' for s in stats['selections'])}:"
+            " each configuration's molecule, temperature, field, time, spread and reason),"
+            f" labeled at the same level; failures: {stats['n_failures']}; labeling wall time"
+            f" {stats['wall_hours']:.2f} h; not in the counts above;"]
 
 
 def target_lines(folder: str | Path, settings: dict, molecules: list[dict]) -> list[str]:
@@ -742,6 +905,7 @@ def write_card(folder: str | Path) -> Path:
             f"{k} {stats['configurations_by_split'][k]} configurations /"
             f" {stats['molecules_by_split'][k]} molecules" for k in SPLITS) + ";",
         *target_lines(folder, settings, molecules),
+        *active_learning_lines(stats["active_learning"]),
         f"- hydride references: {', '.join(stats['hydrides']) or 'none yet'};",
         *([f"- fields: {v['configurations']} configurations {FIELD_TEXT[k]} (shards"
            f" {v['shards'][0]}-{v['shards'][-1]})" + ("" if k == "ball" else
@@ -775,6 +939,9 @@ def write_card(folder: str | Path) -> Path:
               f"`{SHARD_DIR}/NNNN.h5` labels (emlpack HDF5 stores, never rewritten;"
               f" {shards_size_text(folder)}; new shards: {storage['precision']} positions and"
               f" forces{', gzip' if storage['compress'] else ''}, packed layout);",
+              *([f"`{SHARD_DIR}/{ACTIVE_LEARNING_PART}NNNN.h5` the active-learning labels and"
+                 f" `{ACTIVE_LEARNING_DIR}/*.xyz` the selections they were labeled from (never"
+                 " rewritten);"] if stats["active_learning"] else []),
               "`prepared/NAME.npz` the prepared geometry and Hessian of each molecule"
               + (f"; `{NOTES_FILE}` the notes above." if notes.is_file() else "."), ""]
     path = folder / "README.md"

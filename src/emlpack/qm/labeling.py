@@ -18,7 +18,7 @@ import logging
 import os
 import re
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -31,7 +31,7 @@ from emlpack.data.store import DatasetStore, StoreError
 from emlpack.optional import import_optional
 from emlpack.qm.executor import Executor
 from emlpack.qm.levels import parse_level
-from emlpack.qm.pyscf_labeler import LabelingError, PySCFLabeler
+from emlpack.qm.pyscf_labeler import LabelingError, LabelResult, PySCFLabeler
 from emlpack.qm.recipe import Configuration, configurations
 from emlpack.qm.sampling import (
     PROBES,
@@ -45,13 +45,11 @@ from emlpack.qm.sampling import (
 from emlpack.units import ANGSTROM_IN_BOHR, HARTREE
 
 if TYPE_CHECKING:
-    from collections.abc import Collection, Sequence
+    from collections.abc import Collection
 
     from ase import Atoms
     from ase.calculators.calculator import Calculator
     from tqdm import tqdm
-
-    from emlpack.qm.pyscf_labeler import LabelResult
 
 log = logging.getLogger(__name__)
 
@@ -633,17 +631,12 @@ def run_labeling(
                     if stop:
                         break
                     continue
-                if res.ok:
-                    s = res.to_structure(source=conf.key, info={
-                        "key": conf.key, "molecule_id": conf.molecule_id, "kind": conf.kind,
-                    })
-                    store.append(s)
+                if store_result(store, conf, res):
                     summary.n_new += 1
-                    if conf.kind == "hydride":
-                        store.set_reference(conf.molecule_id, res.energy, res.level)
-                    bar.update(1)
                 else:
-                    record_failures(conf.molecule_id, [conf.key], res.error)
+                    summary.n_failed_new += 1
+                    summary.failures.append(f"{conf.molecule_id}: {res.error}")
+                bar.update(1)
                 if on_stored and on_stored(store):
                     break
     finally:
@@ -653,3 +646,89 @@ def run_labeling(
 
 def _identity(x: Molecule) -> Molecule:
     return x
+
+
+def store_result(store: DatasetStore, conf: Configuration, res: LabelResult) -> bool:
+    """Store the label ``res`` of ``conf`` as a record (a hydride's energy also as a
+    reference), or its failure with the reason; True when labeled."""
+    if not res.ok:
+        store.add_failures([{"key": conf.key, "molecule_id": conf.molecule_id,
+                             "kind": conf.kind, "reason": res.error}])
+        return False
+    store.append(res.to_structure(source=conf.key, info={
+        "key": conf.key, "molecule_id": conf.molecule_id, "kind": conf.kind}))
+    if conf.kind == "hydride":
+        store.set_reference(conf.molecule_id, res.energy, res.level)
+    return True
+
+
+def label_configurations(
+    configs: Sequence[Configuration],
+    store_path: str | Path,
+    level: str,
+    boys_starts: int = 3,
+    seed: int = 0,
+    workers: int | None = 0,
+    threads: int | None = None,
+    scheduler: str | None = None,
+    progress: bool = True,
+    exclude_keys: set[str] | None = None,
+    on_stored: Callable[[DatasetStore], bool] | None = None,
+    metadata: dict | None = None,
+) -> LabelingSummary:
+    """Label given configurations (nuclei in Å, field in V/Å; no preparation, no sampling)
+    into the store, as :func:`run_labeling` labels a recipe's: one :func:`label_task` per
+    configuration on the :class:`~emlpack.qm.executor.Executor`, each result stored by this
+    process as it arrives (a failure recorded with its reason), keys already in the store or in
+    ``exclude_keys`` skipped, so a re-run resumes. The store must have been labeled at the same
+    ``level`` (its ``level`` attribute); ``metadata`` is stored as file attributes (strings).
+    ``on_stored``: as :func:`run_labeling`'s (True stops the run).
+    """
+    from emlpack.progress import progress as progress_bar
+
+    t0 = time.perf_counter()
+    import_optional("pyscf", "DFT labeling (PySCF)")
+    Executor.check_backend(workers, scheduler)  # before the store is opened
+    keys = [c.key for c in configs]
+    if len(set(keys)) != len(keys):
+        raise SamplingError("configuration keys must be unique")
+    level_name = parse_level(level).name
+    store_path = Path(store_path)
+    store = DatasetStore(store_path, "a")
+    old = store.metadata.get("level")
+    if old is not None and old != level_name:
+        store.close()
+        raise StoreError(f"{store_path}: was labeled at {old}, not {level_name}; use a new store")
+    store.set_metadata(level=level_name, **(metadata or {}))
+    done = store.done_keys() | set(exclude_keys or ())
+    todo = {c.key: c for c in configs if c.key not in done}
+    summary = LabelingSummary(str(store_path), n_skipped_done=len(configs) - len(todo))
+    log.info("labeling %d configurations into %s at %s (%d done), workers %s, scheduler %s",
+             len(todo), store_path, level_name, summary.n_skipped_done, workers, scheduler)
+    executor = Executor(workers, scheduler)
+    if threads is None and executor.uses_dask:
+        threads = executor.threads_per_task
+    bar = progress_bar(total=len(todo), desc="label", unit="conf", enabled=progress)
+    try:
+        for key, conf in todo.items():
+            executor.submit(label_task, conf, level_name, int(boys_starts), int(seed), threads,
+                            tag=key)
+        for key, fut in executor.completed():
+            try:
+                conf, res = fut.result()
+            except Exception as exc:  # noqa: BLE001 - e.g. a worker died: recorded, run goes on
+                conf = todo[key]
+                res = LabelResult(status="failed", error=f"task failed: {type(exc).__name__}:"
+                                  f" {exc}", numbers=conf.numbers, positions=conf.positions,
+                                  field=conf.field, charge=conf.charge, level=level_name)
+            if store_result(store, conf, res):
+                summary.n_new += 1
+            else:
+                summary.n_failed_new += 1
+                summary.failures.append(f"{conf.key}: {res.error}")
+            bar.update(1)
+            if on_stored and on_stored(store):
+                break
+    finally:
+        summary.close_run(store, bar, executor, t0)
+    return summary
