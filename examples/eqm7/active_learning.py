@@ -18,9 +18,10 @@ Stages (``active_learning.yaml``; ``key=value`` arguments override it, dots for 
               never rewritten: a new round for a new selection) and round-RR.json (thresholds,
               counts); per frame, DP-GEN's trust levels: a candidate when a spread lies
               between its lower and upper threshold (forces: by default the median and the
-              95 % quantile of the ensemble's calibrated spreads on the validation molecules),
-              and the frames just before a watchdog stop or event or before the first bonding
-              change (whatever their spread); frames after a bonding change or a stop are not
+              95 % quantile of the ensemble's calibrated spreads on the validation molecules)
+              or a member could not relax the pairs where the driver could, and the frames
+              just before a watchdog stop or event or before the first bonding change
+              (whatever their spread); frames at or after a bonding change or a stop are not
               used. At most max_per_trajectory per trajectory, min_spacing_fs apart (failures
               first, then the largest spread), then round-robin over the trajectories up to the
               budget. Each configuration keeps its provenance: key, molecule, temperature,

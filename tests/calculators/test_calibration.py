@@ -11,7 +11,12 @@ import pytest
 import torch
 
 from emlpack.calculators.ase import EMLPCalculator
-from emlpack.calculators.calibration import calibrate_spread, spread_and_error, warned_fraction
+from emlpack.calculators.calibration import (
+    calibrate_spread,
+    result_spread,
+    spread_and_error,
+    warned_fraction,
+)
 from emlpack.calculators.ensemble import (
     ENERGY_SPREAD_WARNING,
     FORCE_SPREAD_WARNING,
@@ -152,3 +157,26 @@ def test_shipped_calibration_sets_the_calculators_and_the_commands_warnings(
         assert all("calibrated" in w for w in spread)
         flags.append(bool(spread))
     assert flags == [False, True]
+
+
+def test_pair_spread_is_the_largest_pair_coordinate_std_over_members():
+    """Two models relaxing the pairs of one molecule: ``electron_pairs_std`` is the population
+    std over the members of every pair coordinate (each member from the same start, so pair k
+    is the same pair in both), and ``result_spread`` reduces the calculator's spreads to their
+    largest components (energy per atom)."""
+    methane = read_structures(shared_path("data/eqm7_pbe0_subset.xyz"))[0]
+    models = [load_model("small").double(), load_model("small").double()]
+    with torch.no_grad():
+        for p in models[1].parameters():
+            p.mul_(1.02)
+    atoms = structure_to_atoms(methane)
+    atoms.calc = EMLPCalculator(models, check_bonding=False)
+    atoms.get_potential_energy()
+    r = atoms.calc.results
+    pairs = np.array([res.pairs for res in atoms.calc.relax_results])
+    np.testing.assert_allclose(r["electron_pairs_std"], pairs.std(axis=0), atol=1e-14)
+    spread = result_spread(r, len(atoms))
+    assert spread["pair_spread"] == pytest.approx(float(pairs.std(axis=0).max()))
+    assert spread["pair_spread"] > 0
+    assert spread["force_spread"] == pytest.approx(float(np.max(r["forces_std"])))
+    assert spread["energy_spread"] == pytest.approx(r["energy_std"] / len(atoms))
