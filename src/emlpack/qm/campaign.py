@@ -594,8 +594,8 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
 def label_part(folder: str | Path, configs: list[Configuration], part: str,
                source: str, workers: int = 0, threads: int | None = None,
                hours: float | None = None, shard_minutes: float = 20.0,
-               commit: bool = False, commit_paths: list[Path] = (),
-               progress: bool = True) -> dict:
+               shard_min_records: int = SHARD_MIN_RECORDS, commit: bool = False,
+               commit_paths: list[Path] = (), progress: bool = True) -> dict:
     """Label given configurations into a part of the campaign's data set: shards
     ``shards/PARTNNNN.h5`` (:func:`export_shard`) at the campaign's level and Foster-Boys
     starts (``campaign.yaml``'s recipe), with the card regenerated.
@@ -603,7 +603,8 @@ def label_part(folder: str | Path, configs: list[Configuration], part: str,
     Each configuration's key is ``MOLECULE/KIND/NNNN``, its molecule a row of
     ``molecules.csv``. Labels go into a working store ``work/PART-HOST-HASH.h5`` (not
     committed) through :func:`emlpack.qm.labeling.label_configurations` and become a new shard
-    every ``shard_minutes`` and at the end (also on Ctrl-C or SIGTERM), each committed with
+    every ``shard_minutes`` once there are ``shard_min_records`` new records and failures, and
+    at the end (also on Ctrl-C or SIGTERM), as :func:`run_campaign`'s; each committed with
     ``commit`` (with ``commit_paths``, e.g. the selection the configurations come from); keys
     that a shard of any part holds are skipped, so a re-run on any machine resumes. ``source``
     (e.g. the selection files) is stored in the shards' metadata. ``hours``: stop after this
@@ -654,7 +655,8 @@ def label_part(folder: str | Path, configs: list[Configuration], part: str,
 
     def on_stored(store: DatasetStore) -> bool:
         over = hours is not None and time.time() - t0 > hours * 3600.0
-        if over or time.monotonic() - state["last"] > shard_minutes * 60.0:
+        due = time.monotonic() - state["last"] > shard_minutes * 60.0
+        if over or (due and sum(map(len, unexported(folder, store))) >= shard_min_records):
             state["last"] = time.monotonic()
             flush(store)
         return over
