@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import importlib.util
 import sys
+from pathlib import Path
 from types import ModuleType
 
 from emlpack.data.references import load_hydrides
@@ -75,3 +76,14 @@ def tiny_dataset(folder, shards: int = 1, level: str = PAPER_LEVEL,
         with DatasetStore(folder / "shards" / f"{n:04d}.h5", "a") as store:
             store.append(records)
     return folder
+
+
+def qm7_with_reserved_ethanol(path: Path) -> Path:
+    """A ten-row QM7 SMILES list whose row 5 (a reserved row) is ethanol, the others N2: the
+    tiny data set's ethanol then counts as a reserved molecule."""
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["smiles"])
+        for i in range(10):
+            w.writerow(["CCO" if i == 5 else "N#N"])
+    return path

@@ -6,7 +6,6 @@ resume and never rewrite a shard)."""
 
 from __future__ import annotations
 
-import csv
 import json
 
 import numpy as np
@@ -23,7 +22,7 @@ from emlpack.data.shards import (
 from emlpack.errors import InputError
 from emlpack.qm.campaign import IR_TEST_SMILES, campaign_recipe, graph_key
 from tests.conftest import ROOT, require, shared_path
-from tests.examples.eqm7_data import example_module, tiny_dataset
+from tests.examples.eqm7_data import example_module, qm7_with_reserved_ethanol, tiny_dataset
 
 #: trust levels of the synthetic records: forces (eV/Å) and pairs (Å), lower and upper
 LEVELS = {"forces": [0.2, 2.0], "pairs": [0.02, 0.5]}
@@ -167,12 +166,7 @@ def tiny(tmp_path, al):
     recipe.update(level="tiny", boys_starts=1)
     (folder / "campaign.yaml").write_text(yaml.safe_dump(
         {"name": "tiny", "source": "test", "seed": 0, "n_large": 0, "recipe": recipe}))
-    qm7 = tmp_path / "qm7.csv"
-    with qm7.open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["smiles"])
-        for i in range(10):
-            w.writerow(["CCO" if i == 5 else "N#N"])
+    qm7 = qm7_with_reserved_ethanol(tmp_path / "qm7.csv")
     overrides = [f"data={folder}", f"smiles={qm7}", f"workdir={tmp_path / 'runs'}",
                  "explore.molecules=1", "explore.temperatures=[300, 500]",
                  "explore.time_fs=5.0", "explore.evaluate_every=5", "progress=false",

@@ -3,7 +3,6 @@ only, never a held-out or reserved graph) and one label end to end at a small ba
 
 from __future__ import annotations
 
-import csv
 import json
 
 import numpy as np
@@ -12,7 +11,12 @@ import pytest
 from emlpack.data.shards import read_molecule_table, read_shards
 from emlpack.qm.campaign import IR_TEST_SMILES, graph_key
 from tests.conftest import ROOT, require, shared_path
-from tests.examples.eqm7_data import MOLECULES, example_module, tiny_dataset
+from tests.examples.eqm7_data import (
+    MOLECULES,
+    example_module,
+    qm7_with_reserved_ethanol,
+    tiny_dataset,
+)
 
 
 @pytest.fixture(scope="module")
@@ -49,12 +53,7 @@ def test_one_label_at_a_small_basis_is_written_resumed_and_read(tmp_path, labels
     symmetric positive tensor, a second run does nothing, and ``read_shards`` attaches it."""
     require("pyscf")
     folder = tiny_dataset(tmp_path / "data")
-    qm7 = tmp_path / "qm7.csv"
-    with qm7.open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["smiles"])
-        for i in range(10):
-            w.writerow(["CCO" if i == 5 else "N#N"])
+    qm7 = qm7_with_reserved_ethanol(tmp_path / "qm7.csv")
     args = ["--data", str(folder), "--smiles", str(qm7), "--level", "tiny"]
     chosen = labels.select_configurations(
         read_shards(folder).structures, read_molecule_table(folder),

@@ -483,6 +483,57 @@ def export_shard(folder: str | Path, store: DatasetStore, run_info: dict,
     return write_packed(final, structures, new_fail, references, metadata, **storage)
 
 
+class ShardExports:
+    """A labeling run's shards: the finished labels of its working store become a new shard
+    of ``part`` (:func:`export_shard`) when :meth:`on_stored` finds ``shard_minutes`` passed
+    and at least ``shard_min_records`` new records and failures (or the ``hours`` limit
+    reached), and at every :meth:`flush` (the run's end, also on Ctrl-C or SIGTERM); each
+    with the card regenerated and, with ``commit``, committed with ``commit_paths``."""
+
+    def __init__(self, folder: Path, settings: dict, workers: int, threads: int | None, *,
+                 hours: float | None, shard_minutes: float, shard_min_records: int,
+                 commit: bool, commit_paths: list[Path] = (), part: str = CAMPAIGN_PART,
+                 info: dict | None = None) -> None:
+        self.folder, self.settings, self.part = folder, settings, part
+        self.hours, self.shard_minutes = hours, shard_minutes
+        self.shard_min_records, self.commit = shard_min_records, commit
+        self.commit_paths = [folder / SHARD_DIR, folder / "README.md", *commit_paths]
+        cpus = os.cpu_count() or 1
+        self.run = {"host": socket.gethostname(), "cpus": cpus, "workers": workers,
+                    "threads": threads or max(1, cpus // max(workers, 1)), **(info or {})}
+        self.t0, self.last, self.since = time.time(), time.monotonic(), time.time()
+        self.shards: list[Path] = []
+        for tmp in (folder / SHARD_DIR).glob(".*.tmp*"):
+            if time.time() - tmp.stat().st_mtime > 3600:
+                tmp.unlink()  # left by a run killed while writing (never a finished file)
+
+    def flush(self, store: DatasetStore) -> None:
+        """The store's unexported labels into a new shard (nothing when there are none)."""
+        now = time.time()
+        info = dict(self.run, started=self.since, ended=now, wall_s=now - self.since)
+        shard = export_shard(self.folder, store, info, self.settings.get("storage"),
+                             part=self.part)
+        if shard is None:
+            return
+        self.since = now  # the next shard accounts the wall time from here
+        self.shards.append(shard)
+        write_card(self.folder)
+        log.info("%s: wrote %s", self.folder, shard)
+        if self.commit:  # the folders: a shard renamed but not committed by a killed run, too
+            git_commit(self.commit_paths,
+                       f"{self.settings.get('name', self.folder.name)}: shard {shard.stem}")
+
+    def on_stored(self, store: DatasetStore) -> bool:
+        """After each stored label: a shard when one is due; True once ``hours`` passed."""
+        over = self.hours is not None and time.time() - self.t0 > self.hours * 3600.0
+        due = time.monotonic() - self.last > self.shard_minutes * 60.0
+        if over or (due and sum(map(len, unexported(self.folder, store)))
+                    >= self.shard_min_records):
+            self.last = time.monotonic()
+            self.flush(store)
+        return over
+
+
 def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = None,
                  hours: float | None = None, shard_minutes: float = 20.0,
                  shard_min_records: int = SHARD_MIN_RECORDS,
@@ -514,9 +565,12 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
     molecules = read_molecule_table(folder)
     recipe = settings["recipe"]
     check_labeling_dependencies(recipe, workers)
-    for tmp in [*(folder / SHARD_DIR).glob(".*.tmp*"), *(folder / "prepared").glob(".*.tmp*")]:
+    for tmp in (folder / "prepared").glob(".*.tmp*"):
         if time.time() - tmp.stat().st_mtime > 3600:
             tmp.unlink()  # left by a run killed while writing (never a finished file)
+    exports = ShardExports(folder, settings, workers, threads, hours=hours,
+                           shard_minutes=shard_minutes, shard_min_records=shard_min_records,
+                           commit=commit, commit_paths=[folder / "prepared"])
     work = work_store_path(folder, recipe)
     host = socket.gethostname()
     earlier = [folder / "work" / f"labels-{host}.h5",
@@ -524,44 +578,17 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
     for other in (p for p in earlier if p.exists()):
         if other != work:  # labels of a run with an earlier recipe: keep the finished ones
             with DatasetStore(other, "a") as store:
-                shard = export_shard(folder, store, {"host": socket.gethostname()},
-                                     settings.get("storage"))
+                shard = export_shard(folder, store, {"host": host}, settings.get("storage"))
             if shard is not None:
                 log.info("campaign %s: %s (earlier recipe) -> %s", folder, other, shard)
                 if commit:
                     git_commit([folder / SHARD_DIR],
                                f"{settings.get('name', folder.name)}: shard {shard.stem}")
     done = finished_keys(folder, failures=not retry_failed)
-    t0 = time.time()
-    state = {"last": time.monotonic(), "shards": [], "since": time.time()}
-    run = {"host": socket.gethostname(), "cpus": os.cpu_count() or 1, "workers": workers,
-           "threads": threads or max(1, (os.cpu_count() or 1) // max(workers, 1))}
     log.info("campaign %s: %d molecules, %d keys finished in shards; %s; hours %s, shards every"
              " %g min of at least %d records, commit %s; level %s", folder, len(molecules),
-             len(done), run, hours, shard_minutes, shard_min_records, commit,
+             len(done), exports.run, hours, shard_minutes, shard_min_records, commit,
              recipe.get("level"))
-
-    def flush(store: DatasetStore) -> None:
-        now = time.time()
-        info = dict(run, started=state["since"], ended=now, wall_s=now - state["since"])
-        shard = export_shard(folder, store, info, settings.get("storage"))
-        if shard is None:
-            return
-        state["since"] = now  # the next shard accounts the wall time from here
-        state["shards"].append(shard)
-        write_card(folder)
-        log.info("campaign %s: wrote %s", folder, shard)
-        if commit:  # the folders: a shard renamed but not committed by a killed run, too
-            git_commit([folder / SHARD_DIR, folder / "prepared", folder / "README.md"],
-                       f"{settings.get('name', folder.name)}: shard {shard.stem}")
-
-    def on_stored(store: DatasetStore) -> bool:
-        over = hours is not None and time.time() - t0 > hours * 3600.0
-        due = time.monotonic() - state["last"] > shard_minutes * 60.0
-        if over or (due and sum(map(len, unexported(folder, store))) >= shard_min_records):
-            state["last"] = time.monotonic()
-            flush(store)
-        return over
 
     order, target = campaign_target(folder, settings, molecules)
     if past_target:
@@ -581,13 +608,13 @@ def run_campaign(folder: str | Path, workers: int = 2, threads: int | None = Non
         try:
             summary = run_labeling(sources, work, recipe, workers=workers, progress=progress,
                                    threads=threads, prep_dir=folder / "prepared",
-                                   exclude_keys=done, on_stored=on_stored,
+                                   exclude_keys=done, on_stored=exports.on_stored,
                                    retry_failed=retry_failed)
         finally:  # also on Ctrl-C or SIGTERM: the finished labels become a last shard
             with DatasetStore(work, "a") as store:
-                flush(store)
+                exports.flush(store)
     return {"new_records": summary.n_new, "new_failures": summary.n_failed_new,
-            "shards": [str(p) for p in state["shards"]], "wall_s": time.time() - t0,
+            "shards": [str(p) for p in exports.shards], "wall_s": time.time() - exports.t0,
             "target": campaign_target(folder, settings, molecules)[1]}
 
 
@@ -629,52 +656,25 @@ def label_part(folder: str | Path, configs: list[Configuration], part: str,
                           ).hexdigest()[:8]
     work = folder / "work" / f"{part}{socket.gethostname()}-{digest}.h5"
     work.parent.mkdir(parents=True, exist_ok=True)
-    for tmp in (folder / SHARD_DIR).glob(".*.tmp*"):
-        if time.time() - tmp.stat().st_mtime > 3600:
-            tmp.unlink()  # left by a run killed while writing (never a finished file)
-    t0 = time.time()
-    state = {"last": time.monotonic(), "shards": [], "since": time.time()}
-    run = {"host": socket.gethostname(), "cpus": os.cpu_count() or 1, "workers": workers,
-           "threads": threads or max(1, (os.cpu_count() or 1) // max(workers, 1))}
-    name = settings.get("name", folder.name)
-
-    def flush(store: DatasetStore) -> None:
-        now = time.time()
-        info = dict(run, started=state["since"], ended=now, wall_s=now - state["since"],
-                    source=source)
-        shard = export_shard(folder, store, info, settings.get("storage"), part=part)
-        if shard is None:
-            return
-        state["since"] = now
-        state["shards"].append(shard)
-        write_card(folder)
-        log.info("%s: wrote %s", folder, shard)
-        if commit:
-            git_commit([folder / SHARD_DIR, folder / "README.md", *commit_paths],
-                       f"{name}: shard {shard.stem}")
-
-    def on_stored(store: DatasetStore) -> bool:
-        over = hours is not None and time.time() - t0 > hours * 3600.0
-        due = time.monotonic() - state["last"] > shard_minutes * 60.0
-        if over or (due and sum(map(len, unexported(folder, store))) >= shard_min_records):
-            state["last"] = time.monotonic()
-            flush(store)
-        return over
+    exports = ShardExports(folder, settings, workers, threads, hours=hours,
+                           shard_minutes=shard_minutes, shard_min_records=shard_min_records,
+                           commit=commit, commit_paths=list(commit_paths), part=part,
+                           info={"source": source})
 
     with terminate_as_interrupt():
         try:
             summary = label_configurations(
                 configs, work, label["level"], label["boys_starts"], label["seed"],
                 workers=workers, threads=threads, progress=progress,
-                exclude_keys=finished_keys(folder), on_stored=on_stored,
+                exclude_keys=finished_keys(folder), on_stored=exports.on_stored,
                 metadata={"recipe": yaml.safe_dump(dict(label, part=part, source=source),
                                                    sort_keys=True)})
         finally:  # also on Ctrl-C or SIGTERM: the finished labels become a last shard
             with DatasetStore(work, "a") as store:
-                flush(store)
+                exports.flush(store)
     return {"new_records": summary.n_new, "new_failures": summary.n_failed_new,
             "skipped_done": summary.n_skipped_done,
-            "shards": [str(p) for p in state["shards"]], "wall_s": time.time() - t0}
+            "shards": [str(p) for p in exports.shards], "wall_s": time.time() - exports.t0}
 
 
 # ---------------------------------------------------------------------------------- card

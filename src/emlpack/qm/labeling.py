@@ -374,6 +374,17 @@ class LabelingSummary:
     failures: list[str] = field(default_factory=list)
     wall_time: float = 0.0
 
+    def add_result(self, store: DatasetStore, conf: Configuration, res: LabelResult, bar: tqdm,
+                   name: str) -> None:
+        """Store one label (:func:`store_result`), count it as new or failed (``name`` in the
+        failure line) and advance the progress bar."""
+        if store_result(store, conf, res):
+            self.n_new += 1
+        else:
+            self.n_failed_new += 1
+            self.failures.append(f"{name}: {res.error}")
+        bar.update(1)
+
     def close_run(self, store: DatasetStore, bar: tqdm, executor: Executor, t0: float) -> None:
         """End a labeling run (every driver, also on an error): close the progress bar, the
         executor and the store; record the store's size and the wall time since ``t0``."""
@@ -631,12 +642,7 @@ def run_labeling(
                     if stop:
                         break
                     continue
-                if store_result(store, conf, res):
-                    summary.n_new += 1
-                else:
-                    summary.n_failed_new += 1
-                    summary.failures.append(f"{conf.molecule_id}: {res.error}")
-                bar.update(1)
+                summary.add_result(store, conf, res, bar, conf.molecule_id)
                 if on_stored and on_stored(store):
                     break
     finally:
@@ -721,12 +727,7 @@ def label_configurations(
                 res = LabelResult(status="failed", error=f"task failed: {type(exc).__name__}:"
                                   f" {exc}", numbers=conf.numbers, positions=conf.positions,
                                   field=conf.field, charge=conf.charge, level=level_name)
-            if store_result(store, conf, res):
-                summary.n_new += 1
-            else:
-                summary.n_failed_new += 1
-                summary.failures.append(f"{conf.key}: {res.error}")
-            bar.update(1)
+            summary.add_result(store, conf, res, bar, conf.key)
             if on_stored and on_stored(store):
                 break
     finally:
