@@ -17,6 +17,10 @@
 #                 small JSON per measurement, committed every 25 min); ends by itself
 #   bg-optimize   the beta-glycine DFT optimisation (CP2K, one process; every step a record,
 #                 turned into shards of datasets/beta-glycine every 25 min and committed)
+#   bg-settings   the CP2K settings check at the DFT optimum (examples/beta_glycine/
+#                 settings_check.py: 400/500/600 Ry, relative cutoff 50/60, one sample; ~1 CPU h;
+#                 each candidate committed to examples/beta_glycine/settings_check/), after
+#                 bg-optimize on its core
 #   val-refs      the DFT polarizabilities of mini-eQM7's validation molecules
 #                 (examples/eqm7/validation_references.py; files committed every 25 min), on
 #                 the core beside bg-optimize
@@ -105,6 +109,24 @@ start_bg_optimize() {
   echo "bg-optimize: PID $!, log runs/bg-optimize.log"
 }
 
+BG_SETTINGS_JSON=examples/beta_glycine/settings_check_optimum.json
+
+start_bg_settings() {
+  running bg-settings && return 0
+  [ -f "$BG_SETTINGS_JSON" ] && return 0
+  bg_optimize_done || return 0
+  command -v cp2k.psmp >/dev/null || { echo "bg-settings: no CP2K (make install-cp2k)"; return 0; }
+  code_copy bgset
+  PYTHONPATH=/tmp/emlp-bgset/src OMP_NUM_THREADS=1 nohup "$PY" \
+    /tmp/emlp-bgset/examples/beta_glycine/settings_check.py --config \
+    examples/beta_glycine/config.yaml --only config rel-60 cutoff-500 cutoff-600 \
+    cutoff-600-rel-60 --reference cutoff-600-rel-60 --results \
+    examples/beta_glycine/settings_check --out "$BG_SETTINGS_JSON" --commit \
+    >> runs/bg-settings.log 2>&1 &
+  echo $! > "$PIDS/bg-settings.pid"
+  echo "bg-settings: PID $!, log runs/bg-settings.log"
+}
+
 val_refs_done() {
   [ "$(ls datasets/mini-eqm7/references/pbe0_aug-cc-pvtz/validation/*.json 2>/dev/null | wc -l)" -ge 15 ]
 }
@@ -170,7 +192,7 @@ start_alpha_labels() {
 
 others() {  # how many of the other jobs run (each takes one core)
   local n=0 job
-  for job in level-choice bg-optimize val-refs raman-dft bakeoff alpha-labels; do running "$job" && n=$((n + 1)); done
+  for job in level-choice bg-optimize bg-settings val-refs raman-dft bakeoff alpha-labels; do running "$job" && n=$((n + 1)); done
   echo "$n"
 }
 
@@ -190,6 +212,7 @@ start_pretrain() {  # start_pretrain WORKERS
 
 start_all() {
   start_bg_optimize
+  running bg-optimize || start_bg_settings
   start_level_choice
   # the brief's second stage (the equivariant family and the faster trainer exist): the chain
   # val-refs -> raman-dft -> bakeoff -> alpha-labels takes one core beside bg-optimize; the
@@ -230,7 +253,7 @@ tree() {  # tree PID: the process and all its descendants
 
 signal_jobs() {  # signal_jobs SIGNAL: the running jobs (not the watcher) and their children
   local job pids=""
-  for job in level-choice bg-optimize val-refs raman-dft bakeoff alpha-labels pretrain; do
+  for job in level-choice bg-optimize bg-settings val-refs raman-dft bakeoff alpha-labels pretrain; do
     running "$job" && pids="$pids $(tree "$(cat "$PIDS/$job.pid")" | tr "\n" " ")"
   done
   # shellcheck disable=SC2086
@@ -240,7 +263,7 @@ signal_jobs() {  # signal_jobs SIGNAL: the running jobs (not the watcher) and th
 
 status() {
   local job
-  for job in level-choice bg-optimize val-refs raman-dft bakeoff alpha-labels pretrain watcher; do
+  for job in level-choice bg-optimize bg-settings val-refs raman-dft bakeoff alpha-labels pretrain watcher; do
     if running "$job"; then echo "$job: running (PID $(cat "$PIDS/$job.pid"))"; else echo "$job: not running"; fi
   done
   echo "--- level choice"
@@ -248,7 +271,8 @@ status() {
   level_choice_done && echo "complete" || echo "not complete"
   echo "--- beta-glycine DFT optimisation$([ -f examples/beta_glycine/HOLD ] && echo ' (on hold: examples/beta_glycine/HOLD)')"
   grep "optimize step" runs/bg-optimize.log 2>/dev/null | tail -2 || true
-  ls datasets/beta-glycine/shards/*.h5 2>/dev/null | wc -l | sed 's/^/shards: /'
+  ls datasets/beta-glycine-sc212/shards/*.h5 2>/dev/null | wc -l | sed 's/^/shards (2x1x2 supercell): /'
+  echo "--- CP2K settings at the optimum: $(ls examples/beta_glycine/settings_check/*.json 2>/dev/null | wc -l) of 5 candidates$([ -f "$BG_SETTINGS_JSON" ] && echo ', table written')"
   echo "--- validation references: $(ls datasets/mini-eqm7/references/pbe0_aug-cc-pvtz/validation/*.json 2>/dev/null | wc -l) of 15"
   echo "--- bake-off (examples/eqm7/bakeoff.yaml)"
   PYTHONPATH=src "$PY" examples/eqm7/bakeoff.py done 2>&1 || true
@@ -277,7 +301,7 @@ case "${1:-start}" in
   stop)
     signal_jobs CONT >/dev/null  # a paused job must run to see its SIGTERM
     stop_job watcher
-    for job in level-choice bg-optimize val-refs raman-dft bakeoff alpha-labels pretrain; do stop_job "$job"; done
+    for job in level-choice bg-optimize bg-settings val-refs raman-dft bakeoff alpha-labels pretrain; do stop_job "$job"; done
     ;;
   status) status ;;
   pause) signal_jobs STOP ;;

@@ -4,10 +4,11 @@ At the DFT optimum (``WORKDIR/optimized.xyz`` of the ``optimize`` stage, or ``--
 one label from the atomic guess keeps its wavefunction; then one round-0-like sample (random
 core displacements, sigma 0.05 Å, seed 0; stress set, Wannier centres) is labeled from that
 wavefunction (``CP2KSettings.wavefunction_guess``, as the campaign would) at the config's level
-and at each cheaper setting. Each setting's labels are compared with the config's level on the
-same sample: energy per atom, forces, stress, Wannier centres; cost in CPU seconds and SCF
-steps. One process, one calculation at a time; each result is a file in ``runs/bg_settings/``
-(a rerun computes only the missing ones); the table goes to ``settings_check.json``.
+and at each cheaper (or tighter) setting. Each setting's labels are compared with the config's
+level (or ``--reference``, e.g. the tightest grid) on the same sample: energy per atom, forces,
+stress, Wannier centres; cost in CPU seconds and SCF steps. One process, one calculation at a
+time; each result is a file in ``--results`` (default ``runs/bg_settings/``; a rerun computes
+only the missing ones, ``--commit`` commits each); the table goes to ``--out``.
 
 Usage (from the project root)::
 
@@ -28,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from emlpack.commits import git_commit
 from emlpack.io import read_structures, write_structures
 from emlpack.qm.cp2k import CP2KLabeler, CP2KSettings
 from emlpack.structure import Structure
@@ -46,6 +48,9 @@ CANDIDATES: dict[str, dict] = {
     "cutoff-300-rel-40": {"cutoff_ry": 300.0, "rel_cutoff_ry": 40.0},
     "eps-scf-1e-5": {"eps_scf": 1e-5},
     "eps-default-1e-10": {"eps_default": 1e-10},
+    "rel-60": {"rel_cutoff_ry": 60.0},  # the finest grid's share of the density (tighter)
+    "cutoff-600": {"cutoff_ry": 600.0},  # tighter still: the grid error of 400 and 500 Ry
+    "cutoff-600-rel-60": {"cutoff_ry": 600.0, "rel_cutoff_ry": 60.0},
 }
 
 
@@ -92,10 +97,12 @@ def optimum_wavefunction(st: CP2KSettings, structure: Structure) -> tuple[Path, 
     return wfn, info
 
 
-def run_candidate(name: str, st: CP2KSettings, sample: Structure, wfn: Path) -> dict:
-    """One setting's labels of the sample from the optimum's wavefunction (cached)."""
-    done = OUT / f"{name}.xyz"
-    meta = OUT / f"{name}.json"
+def run_candidate(name: str, st: CP2KSettings, sample: Structure, wfn: Path,
+                  results: Path = OUT) -> dict:
+    """One setting's labels of the sample from the optimum's wavefunction (cached in
+    ``results``: NAME.xyz, NAME.json)."""
+    done = results / f"{name}.xyz"
+    meta = results / f"{name}.json"
     if done.exists() and meta.exists():
         return {"labels": read_structures(done)[0], **json.loads(meta.read_text())}
     settings = replace(st, **CANDIDATES[name], wavefunction_guess=str(wfn))
@@ -130,6 +137,13 @@ def main(argv: list[str] | None = None) -> None:
                    help="extxyz of the optimum (default: WORKDIR/optimized.xyz of the config)")
     p.add_argument("--out", default=str(HERE / "settings_check.json"), help="the table (JSON)")
     p.add_argument("--only", nargs="+", choices=list(CANDIDATES), default=list(CANDIDATES))
+    p.add_argument("--reference", choices=list(CANDIDATES), default="config",
+                   help="the setting the others are compared with (default: the config's)")
+    p.add_argument("--results", default=str(OUT),
+                   help="folder of the finished candidates' labels (NAME.xyz, NAME.json); the"
+                   " wavefunction and CP2K's scratch stay in runs/bg_settings")
+    p.add_argument("--commit", action="store_true",
+                   help="commit the results folder after every candidate")
     args = p.parse_args(argv)
     cfg = yaml.safe_load(Path(args.config).read_text())
     path = Path(args.structure or Path(cfg["workdir"]) / "optimized.xyz")
@@ -143,16 +157,21 @@ def main(argv: list[str] | None = None) -> None:
     print(f"optimum from the atomic guess: {cold['cpu_s']:.0f} CPU s, {cold['scf_steps']} SCF"
           " steps", flush=True)
     sample = sample_of(optimum)
-    names = ["config", *[n for n in args.only if n != "config"]]
+    names = list(dict.fromkeys(["config", args.reference, *args.only]))
+    folder = Path(args.results)
+    folder.mkdir(parents=True, exist_ok=True)
     results = {}
     for name in names:
-        r = run_candidate(name, st, sample, wfn)
+        fresh = not (folder / f"{name}.json").exists()
+        r = run_candidate(name, st, sample, wfn, folder)
         results[name] = r
+        if fresh and args.commit:
+            git_commit([folder], f"beta-glycine settings check at the optimum: {name}")
         print(f"{name}: {r['cpu_s']:.0f} CPU s, {r['scf_steps']} SCF steps", flush=True)
-    ref = results["config"]["labels"]
+    ref = results[args.reference]["labels"]
     table = {"structure": str(path), "level": st.level(), "optimum_atomic_guess": cold,
              "sample": "cores displaced by N(0, 0.05 Å), seed 0; stress set; from the"
-             " optimum's wavefunction", "settings": {}}
+             " optimum's wavefunction", "reference": args.reference, "settings": {}}
     for name, r in results.items():
         row = {k: r[k] for k in ("cpu_s", "wall_s", "scf_steps")}
         row["changes"] = CANDIDATES[name]
@@ -163,6 +182,8 @@ def main(argv: list[str] | None = None) -> None:
     tmp = target.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(table, indent=1) + "\n")
     tmp.replace(target)
+    if args.commit:
+        git_commit([target], "beta-glycine settings check at the optimum: table")
     for name, row in table["settings"].items():
         print(f"{name:>20}: x{row['cost_ratio']:.2f} cost, dE {row['energy_meV_per_atom']:+.3f}"
               f" meV/atom, dF mae/max {row['forces_mae_meV_per_A']:.1f}/"
