@@ -66,6 +66,8 @@ import copy
 import csv
 import datetime as dt
 import json
+import os
+import shutil
 import sys
 import time
 from collections import Counter
@@ -115,6 +117,8 @@ PAPER = {
     "ir": {"frequency_mae_cm-1": 15.0},
 }
 GROUP_LABEL = {"aug": "augmented", "noaug": "non-augmented"}
+#: results.md's title (``title`` in config.yaml replaces it, e.g. the v2 study's)
+DEFAULT_TITLE = "mini-eQM7: the paper's molecular study"
 #: the model groups: name -> trained with the paper's augmentation
 GROUPS = {"aug": True, "noaug": False}
 #: the IR molecules of Figure 4 (names in molecules.csv)
@@ -131,7 +135,7 @@ def load_config(path: str | Path, overrides: list[str] = ()) -> dict:
     configuration of every model (``training.overrides``)."""
     from emlpack.overrides import OverrideError, apply_overrides, load_yaml
 
-    cfg = load_yaml(Path(path).read_text()) or {}
+    cfg = _with_base(Path(path), load_yaml)
     try:
         apply_overrides(cfg, [t for t in overrides if not t.startswith("train.")])
     except OverrideError as exc:
@@ -146,6 +150,35 @@ def load_config(path: str | Path, overrides: list[str] = ()) -> dict:
     cfg.setdefault("seeds", [0, 1, 2, 3])
     cfg.setdefault("split", "test")
     return cfg
+
+
+def merge_config(base: dict, update: dict) -> dict:
+    """``base`` with ``update`` merged in: mappings key by key (recursively), anything else
+    (lists included) replaced."""
+    out = copy.deepcopy(base)
+    for key, value in update.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge_config(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def _with_base(path: Path, load_yaml, seen: tuple[Path, ...] = ()) -> dict:
+    """The config at ``path``; one with ``base: FILE`` (relative to its own folder) is that
+    file's config with its own keys merged over it (:func:`merge_config`), so a second study
+    (``v2/config.yaml``) states only what differs from the first."""
+    path = path.resolve()
+    if path in seen:
+        raise SystemExit(f"{path}: base configs form a cycle")
+    cfg = load_yaml(path.read_text()) or {}
+    base = cfg.pop("base", None)
+    if not base:
+        return cfg
+    base_path = Path(base) if Path(base).is_absolute() else path.parent / base
+    if not base_path.is_file():
+        raise SystemExit(f"{path}: base {base}: no such file")
+    return merge_config(_with_base(base_path, load_yaml, (*seen, path)), cfg)
 
 
 #: the molecules a study is judged on (``split``): the card's split names
@@ -254,6 +287,21 @@ class Study:
         """The split's molecules of the md stage: at most ``md.max_molecules`` of them, evenly
         spaced in the card's order (null: all)."""
         return _subsample(self.split_molecules(), self.cfg.get("md", {}).get("max_molecules"))
+
+    def ir_molecules(self) -> list[str]:
+        """The split's molecules of the harmonic IR comparison (``ir.molecules``; null: every
+        one of the split's, the 15 test molecules of the card): the ir stage optimises the
+        models from their DFT optima and its frequency MAE covers them all (a molecule without
+        a finished DFT Hessian is listed as missing, a failed optimisation as excluded)."""
+        names = [m["name"] for m in self.split_molecules()]
+        listed = (self.cfg.get("ir") or {}).get("molecules")
+        if not listed:
+            return names
+        unknown = sorted(set(listed) - set(names))
+        if unknown:
+            raise SystemExit(f"ir.molecules: {unknown} are not {self.split} molecules of the"
+                             " card (or are left out by molecules/max_molecules)")
+        return [n for n in names if n in set(listed)]
 
     def reference_molecules(self, set_name: str | None = None) -> list[dict]:
         """The molecules of ``set_name`` (None: the split's, ``test`` or ``val``: the card's;
@@ -843,8 +891,11 @@ def dft_results(study: Study, set_name: str | None = None) -> dict[str, dict]:
 
 
 def ir_references(study: Study) -> dict[str, dict]:
-    """The DFT references whose harmonic part (frequencies, intensities) is finished."""
-    return {m: r for m, r in dft_results(study).items() if "frequencies_cm-1" in r}
+    """The DFT references of the IR molecules (``Study.ir_molecules``) whose harmonic part
+    (frequencies, intensities) is finished."""
+    listed = set(study.ir_molecules())
+    return {m: r for m, r in dft_results(study).items()
+            if "frequencies_cm-1" in r and m in listed}
 
 
 def dft_structure(r: dict):
@@ -865,13 +916,15 @@ def stage_file(study: Study, stage: str, name: str, set_name: str | None = None)
 
 
 def _at_dft_optima(study: Study, stage: str, row: Callable[[object, object], dict],
-                   set_name: str | None = None) -> None:
+                   set_name: str | None = None, only: list[str] | None = None) -> None:
     """Stage ``stage`` of every model at the DFT optimum of every reference molecule of
-    ``set_name`` (None: the split's): ``row(model, structure)`` (the DFT structure with its
-    Boys centres) gives one molecule's JSON row; the model's file (``stage_file``) is skipped
-    when it holds every reference molecule."""
+    ``set_name`` (None: the split's; ``only``: of these names alone): ``row(model,
+    structure)`` (the DFT structure with its Boys centres) gives one molecule's JSON row; the
+    model's file (``stage_file``) is skipped when it holds every reference molecule."""
     set_name = set_name or study.split
     refs = dft_results(study, set_name)
+    if only is not None:
+        refs = {m: r for m, r in refs.items() if m in set(only)}
     if not refs:
         source = ("the dft stage" if set_name != "val"
                   else "examples/eqm7/validation_references.py")
@@ -972,6 +1025,10 @@ def polarizability_summary(study: Study, set_name: str | None = None) -> dict | 
             "median": mean_std([m["median"] for m in models.values()]),
             "error_rate": mean_std([m["error_rate"] for m in models.values()]),
             "isotropic_median": mean_std([m["isotropic_median"] for m in models.values()]),
+            # how many molecules each model puts within 10 % of DFT's α_iso (of n_molecules:
+            # a failed molecule counts as not within)
+            "isotropic_within_10pct": mean_std([m["isotropic_within_10pct"]
+                                                for m in models.values()]),
             "ensemble_mae": float(e.mean()) if e.size else None,
             "ensemble_median": float(np.median(e)) if e.size else None,
         }
@@ -1016,7 +1073,7 @@ def stage_ir(study: Study) -> None:
         study.log(f"ir: no harmonic DFT reference of the {study.split} molecules"
                   f" ({study.dft_dir} holds polarizabilities), skipped")
         return
-    _at_dft_optima(study, "ir", row)
+    _at_dft_optima(study, "ir", row, only=study.ir_molecules())
 
 
 def not_a_minimum(frequencies) -> str:
@@ -1104,7 +1161,10 @@ def ir_summary(study: Study) -> dict | None:
     from ase import Atoms
 
     refs = ir_references(study)
-    out: dict = {"n_molecules": len(refs), "groups": {},
+    # the listed molecules (ir.molecules: every test molecule) without a finished DFT Hessian
+    missing = [m for m in study.ir_molecules() if m not in refs]
+    out: dict = {"n_molecules": len(refs), "n_listed": len(study.ir_molecules()),
+                 "missing": missing, "groups": {},
                  "molecules": {m: {"formula": Atoms(numbers=r["numbers"]).get_chemical_formula(),
                                    "modes": len(r["frequencies_cm-1"])}
                                for m, r in sorted(refs.items())}}
@@ -1428,24 +1488,28 @@ def _ir_bands_md(ir: dict) -> list[str]:
     return [*lines, ""]
 
 
-def _ir_molecules_md(ir: dict) -> list[str]:
+def _ir_molecules_md(ir: dict, base: dict | None = None, label: str | None = None) -> list[str]:
     """The frequency MAE of each test molecule with a DFT Hessian (``ir_summary``'s
-    ``per_molecule``), mean (± std) over the models that compared it."""
+    ``per_molecule``), mean (± std) over the models that compared it; with ``base`` (the
+    earlier study's ``ir_summary``) its columns named ``label`` beside ours."""
     groups = {g: v for g, v in ir["groups"].items() if v.get("per_molecule")}
     if not groups or not ir.get("molecules"):
         return []
-    n_models = {g: len(v["per_model"]) for g, v in groups.items()}
+    columns = [(GROUP_LABEL[g], v) for g, v in groups.items()]
+    if base:
+        columns += [(f"{GROUP_LABEL[g]}, {label}", v) for g, v in base["groups"].items()
+                    if v.get("per_molecule")]
     lines = ["By molecule (frequency MAE, cm⁻¹, mean (± std) over the models; in brackets the"
              " models compared when an optimisation failed):", "",
-             "| molecule | formula | modes | " + " | ".join(GROUP_LABEL[g] for g in groups) + " |",
-             "|---|---|---|" + "---|" * len(groups)]
+             "| molecule | formula | modes | " + " | ".join(c for c, _ in columns) + " |",
+             "|---|---|---|" + "---|" * len(columns)]
     for mol, info in ir["molecules"].items():
         name = IR_MOLECULES.get(mol)
         cells = []
-        for g, v in groups.items():
+        for _, v in columns:
             d = v["per_molecule"].get(mol) or {}
-            n = d.get("n", 0)
-            cells.append(_ms(d) + (f" [{n} of {n_models[g]}]" if n < n_models[g] else ""))
+            n, n_models = d.get("n", 0), len(v["per_model"])
+            cells.append(_ms(d) + (f" [{n} of {n_models}]" if n < n_models else ""))
         lines.append(f"| {mol}{f' ({name})' if name else ''} | {info['formula']} |"
                      f" {info['modes']} | " + " | ".join(cells) + " |")
     return [*lines, ""]
@@ -1548,6 +1612,149 @@ def targets(result: dict) -> list[dict]:
     return out
 
 
+def _part(name: str, value, limit: float, better: str) -> dict:
+    """One measured part of a target: ``value`` against ``limit``, ``better`` "lower" (met
+    when value <= limit) or "higher" (value >= limit); value None: not measured."""
+    return {"name": name, "value": None if value is None else float(value), "limit": limit,
+            "better": better}
+
+
+def part_met(part: dict) -> bool | None:
+    """Whether one part of a target is met (None: not measured)."""
+    if part["value"] is None:
+        return None
+    return (part["value"] <= part["limit"] if part["better"] == "lower"
+            else part["value"] >= part["limit"])
+
+
+def parts_met(parts: list[dict]) -> bool | None:
+    """A target of several parts: False when any measured part misses, None when none misses
+    but one is not measured, else True."""
+    met = [part_met(p) for p in parts]
+    return False if False in met else None if None in met else True
+
+
+def targets_issue51(result: dict) -> list[dict]:
+    """Issue 51's targets (its Targets section: the test molecules, augmented models) with
+    the measured values: each ``{"key", "target", "measured", "met", "parts"}``, the parts
+    the numbers :func:`ship_rule` compares (value None: not measured). Reads a results.json
+    of any version (v1's lacks the isotropic counts: that part is then not measured)."""
+    out = []
+
+    def add(key: str, target: str, measured: str | None, parts: list[dict]) -> None:
+        measured = measured if any(p["value"] is not None for p in parts) else None
+        out.append({"key": key, "target": target, "measured": measured,
+                    "met": parts_met(parts), "parts": parts})
+
+    ev = (result.get("evaluation") or {}).get("test") or {}
+    aug = (ev.get("groups") or {}).get("aug") or {}
+    static = aug.get("static") or {}
+    f = (((static.get("mae") or {}).get("forces")) or {}).get("mean")
+    ratio = f / ev["intrinsic_static"]["forces"] if f is not None else None
+    add("core_forces", "static core-force MAE (augmented) <= 1/10 of the intrinsic variability"
+        " (paper 1/23)", None if ratio is None else f"1/{1 / ratio:.1f}" if ratio else "0",
+        [_part("MAE / intrinsic variability", ratio, 0.1, "lower")])
+    slope = (static.get("pair_field_slope") or {}).get("mean")
+    add("pair_field_slope", "pair-field slope (augmented) <= 0.10", _val(slope, 3),
+        [_part("slope", slope, 0.10, "lower")])
+    pol = ((result.get("polarizability") or {}).get("groups") or {}).get("aug") or {}
+    med = (pol.get("median") or {}).get("mean")
+    within = (pol.get("isotropic_within_10pct") or {}).get("mean")
+    n_pol = (result.get("polarizability") or {}).get("n_molecules")
+    add("polarizability", "polarizability (augmented): component median error <= 0.8 bohr³"
+        " and isotropic value within 10 % of DFT for >= 13 of the 15 molecules",
+        f"median {_val(med, 2)} bohr³; α_iso within 10 % of DFT's: " + (
+            f"{within:g} of {n_pol} molecules (mean over models)" if within is not None
+            else "not recorded"),
+        [_part("component median error [bohr³]", med, 0.8, "lower"),
+         _part("molecules with α_iso within 10 %", within, 13, "higher")])
+    ir = result.get("ir") or {}
+    g = (ir.get("groups") or {}).get("aug")
+    n_test = result["data"]["by_split"]["test"]["molecules"]
+    mae = excluded = missing = None
+    if g:
+        mae = (g.get("frequency_mae") or {}).get("mean")
+        excluded = len(g.get("excluded") or {})
+        # molecules of the list without a DFT Hessian (a results.json before ir.molecules: the
+        # test molecules less those compared)
+        missing = (len(ir["missing"]) if "missing" in ir
+                   else max(n_test - ir.get("n_molecules", 0), 0))
+    add("ir_frequencies", "harmonic IR frequency MAE (augmented) <= 30 cm⁻¹ over the 15"
+        " molecules, no optimisation excluded",
+        f"{_val(mae, 1)} cm⁻¹ over {ir.get('n_molecules')} molecules; {excluded} failed"
+        f" optimisation(s) excluded" + (f"; {missing} without a DFT Hessian" if missing else ""),
+        [_part("frequency MAE [cm⁻¹]", mae, 30.0, "lower"),
+         _part("optimisations excluded", excluded, 0, "lower"),
+         _part("molecules without a DFT Hessian", missing, 0, "lower")])
+    dyn = aug.get("dynamic") or {}
+    rate = (dyn.get("error_rate") or {}).get("mean")
+    rate = None if rate is None else 100 * rate
+    add("dynamic_error_rate", "augmented dynamic error rate <= 1 % (paper 0.4 %)",
+        None if rate is None else f"{rate:.2f} %", [_part("error rate [%]", rate, 1.0, "lower")])
+    md = ((result.get("md") or {}).get("groups") or {}).get("aug") or {}
+    add("md", "augmented MD: >= 57 of 60 runs stable, none with changed bonding",
+        f"{md.get('stable')} of {md.get('runs')} stable, {md.get('bonding_changed')} with"
+        " bonding changed" if md else None,
+        [_part("stable runs", md.get("stable"), 57, "higher"),
+         _part("runs with changed bonding", md.get("bonding_changed"), 0, "lower")])
+    return out
+
+
+#: the target sets a study reports (``targets`` in config.yaml): issue 15's (v1) or issue 51's
+TARGETS = {"issue15": targets, "issue51": targets_issue51}
+
+
+def _target_set(cfg: dict) -> str:
+    name = str(cfg.get("targets") or "issue15")
+    if name not in TARGETS:
+        raise SystemExit(f"targets: one of {', '.join(TARGETS)}, got {name!r}")
+    return name
+
+
+def ship_rule(ours: list[dict], baseline: list[dict]) -> dict:
+    """Issue 51, item 7: a new ensemble ships under the old name when it beats the old one on
+    every target the old one misses. ``ours``, ``baseline``: :func:`targets_issue51` of each
+    study. On a target the baseline misses (or did not measure), ours beats it when it meets
+    the target, or when every part is met or strictly better than the baseline's (a part the
+    baseline did not measure must be met); a part ours did not measure never beats. Returns
+    ``{"ship": bool, "not_beaten": [{"key", "target", "why"}], "regressed": [...]}``,
+    ``regressed`` (not part of the rule, reported beside it): targets the baseline meets and
+    ours does not."""
+    mine = {t["key"]: t for t in ours}
+    not_beaten, regressed = [], []
+    for base in baseline:
+        t = mine.get(base["key"])
+        if t is None:
+            not_beaten.append({"key": base["key"], "target": base["target"],
+                               "why": "not measured"})
+            continue
+        if base["met"] is True:
+            if t["met"] is not True:
+                regressed.append({"key": t["key"], "target": t["target"],
+                                  "why": "met before, " + ("not measured" if t["met"] is None
+                                                           else "missed now")})
+            continue
+        if t["met"] is True:
+            continue
+        base_parts = {p["name"]: p for p in base.get("parts") or ()}
+        why = []
+        for p in t["parts"]:
+            b = base_parts.get(p["name"], {}).get("value")
+            if p["value"] is None:
+                why.append(f"{p['name']}: not measured")
+            elif part_met(p):
+                continue
+            elif b is None:
+                why.append(f"{p['name']}: {p['value']:.4g} misses {p['limit']:g}, and the"
+                           " baseline's is not recorded")
+            elif not (p["value"] < b if p["better"] == "lower" else p["value"] > b):
+                why.append(f"{p['name']}: {p['value']:.4g}, baseline {b:.4g} (target"
+                           f" {'<=' if p['better'] == 'lower' else '>='} {p['limit']:g})")
+        if why:
+            not_beaten.append({"key": t["key"], "target": t["target"], "why": "; ".join(why)})
+    return {"ship": not not_beaten, "not_beaten": not_beaten, "regressed": regressed}
+
+
 def training_setup(best: Path) -> dict | None:
     """What one model's training was, from its run folder (``config.yaml`` as resolved,
     ``log.csv``): architecture, batch, learning rate, optimizer steps and hours of training
@@ -1630,12 +1837,46 @@ def stage_table(study: Study, out_dir: Path | None = None) -> dict:
     if result["evaluation"]["pbe0_subset"] is None:
         result["evaluation"]["pbe0_subset_note"] = (
             f"{second}: not found or not evaluated; the second test set was skipped")
-    result["targets"] = targets(result)
+    if study.cfg.get("title"):
+        result["title"] = study.cfg["title"]
+    result["targets_of"] = _target_set(study.cfg)
+    result["targets"] = TARGETS[result["targets_of"]](result)
+    baseline = load_baseline(study.cfg)
+    if baseline:
+        path = _resolve(study.cfg["baseline"]["results"])
+        result["baseline"] = {
+            "label": study.cfg["baseline"].get("label") or "v1",
+            "results": _repo_relative(path), "generated": baseline.get("generated"),
+            # its figures from results.md's folder (links beside ours)
+            "relative_dir": os.path.relpath(path.resolve().parent, out_dir.resolve()),
+            "targets": TARGETS[result["targets_of"]](baseline)}
+        if result["targets_of"] == "issue51":
+            result["ship"] = ship_rule(result["targets"], result["baseline"]["targets"])
     _write_json(out_dir / "results.json", result)
-    _write_text(out_dir / "results.md", markdown(result, study_notes(study.cfg)))
+    _write_text(out_dir / "results.md", markdown(result, study_notes(study.cfg), baseline))
     study.work["table"] += 1
     study.log(f"table: {out_dir / 'results.md'}")
     return result
+
+
+def _repo_relative(path: Path) -> str:
+    try:
+        return str(path.resolve().relative_to(ROOT))
+    except ValueError:
+        return str(path)
+
+
+def load_baseline(cfg: dict) -> dict | None:
+    """The earlier study's results.json (``baseline.results``, e.g. v1's
+    ``examples/eqm7/results.json`` for the v2 study), whose numbers the tables show beside
+    ours; None without ``baseline``. A missing file stops the table with one line."""
+    b = cfg.get("baseline") or {}
+    if not b.get("results"):
+        return None
+    path = _resolve(b["results"])
+    if not path.is_file():
+        raise SystemExit(f"baseline.results {b['results']}: no such file")
+    return json.loads(path.read_text())
 
 
 def _first_clause(reason: str) -> str:
@@ -1649,13 +1890,23 @@ def _figure_md(result: dict, names: tuple[str, ...]) -> list[str]:
     return [f"![{n}]({n})" for n in names if n in result.get("figures", ())]
 
 
-def _static_md(ev: dict, title: str) -> list[str]:
+def _base_note(label: str | None) -> str:
+    return (f" {label}: the same rows of the earlier study (its committed results.json)."
+            if label else "")
+
+
+def _static_md(ev: dict, title: str, base: dict | None = None,
+               label: str | None = None) -> list[str]:
+    """Table 2 of one test set: ours, the paper's and, with ``base`` (the earlier study's
+    evaluation of the same set, its rows named ``label``), the earlier study's beside them."""
     keys = ("energy", "forces", "pair_forces")
     i = ev["intrinsic_static"]
     p = PAPER["static"]
+    base_groups = (base or {}).get("groups") or {}
     lines = [f"### Table 2 (static errors): {title}", "",
              "Electron pairs at the DFT centres. Ours: mean (± std over models); paper: the"
-             " paper's test set (eQM7, 4 models per group).", "",
+             " paper's test set (eQM7, 4 models per group)."
+             + _base_note(label if base else None), "",
              "| | energy [meV/atom] | core forces [meV/Å] | pair forces [meV/Å] |",
              "|---|---|---|---|",
              "| intrinsic variability (MAE), ours | "
@@ -1663,35 +1914,48 @@ def _static_md(ev: dict, title: str) -> list[str]:
              "| intrinsic variability (MAE), paper | "
              + " | ".join(f"{p['intrinsic'][k]:g}" for k in keys) + " |"]
     for group in ("noaug", "aug"):
-        g = ev["groups"].get(group)
-        for stat, label in (("mae", "MAE"), ("median", "median error")):
+        g, b = ev["groups"].get(group), base_groups.get(group)
+        for stat, stat_label in (("mae", "MAE"), ("median", "median error")):
             if g:
-                lines.append(f"| {GROUP_LABEL[group]}: {label}, ours | " + " | ".join(
+                lines.append(f"| {GROUP_LABEL[group]}: {stat_label}, ours | " + " | ".join(
                     _ms(g["static"][stat][k], 1000, 1) for k in keys) + " |")
-            lines.append(f"| {GROUP_LABEL[group]}: {label}, paper | " + " | ".join(
+            if b:
+                lines.append(f"| {GROUP_LABEL[group]}: {stat_label}, {label} | " + " | ".join(
+                    _ms(b["static"][stat][k], 1000, 1) for k in keys) + " |")
+            lines.append(f"| {GROUP_LABEL[group]}: {stat_label}, paper | " + " | ".join(
                 _paper(p[group][stat][k]) for k in keys) + " |")
     slopes = {group: g["static"]["pair_field_slope"] for group, g in ev["groups"].items()
               if "pair_field_slope" in g["static"]}
+    base_slopes = {group: g["static"]["pair_field_slope"] for group, g in base_groups.items()
+                   if "pair_field_slope" in g["static"]}
     if slopes:
         lines += ["", "Pair field response (slope of the pair-force error on the field force qE;"
                   " 0: the pairs respond to a field as the DFT centres do, 0.5: about twice too"
                   " soft, polarizabilities about twice too large): " + "; ".join(
-                      f"{GROUP_LABEL[group]} {_ms(s, 1, 2)}" for group, s in slopes.items())
+                      f"{GROUP_LABEL[group]} {_ms(s, 1, 2)}"
+                      + (f" ({label} {_ms(base_slopes[group], 1, 2)})"
+                         if group in base_slopes else "") for group, s in slopes.items())
                   + "."]
     return lines + [""]
 
 
-def _dynamic_md(ev: dict, pol: dict | None, title: str) -> list[str]:
+def _dynamic_md(ev: dict, pol: dict | None, title: str, base: dict | None = None,
+                base_pol: dict | None = None, label: str | None = None) -> list[str]:
+    """Table 3 of one test set: ours, the paper's and, with ``base`` and ``base_pol`` (the
+    earlier study's evaluation and polarizability summary of the same set), its rows named
+    ``label`` beside them."""
     keys = ("energy", "forces", "dipole")
     p = PAPER["dynamic"]
     i = ev.get("intrinsic_dynamic")
     if not i:
         return []
+    base_groups = (base or {}).get("groups") or {}
     scale = {"energy": 1000, "forces": 1000, "dipole": 1}
     digits = {"energy": 1, "forces": 1, "dipole": 3}
     lines = [f"### Table 3 (dynamic errors): {title}", "",
              "Electron pairs relaxed; polarizability at the DFT optima of the test molecules"
-             " (components, pairs relaxed, cores clamped) against our DFT finite-field values.",
+             " (components, pairs relaxed, cores clamped) against our DFT finite-field values."
+             + _base_note(label if base else None),
              "",
              "| | energy [meV/atom] | core forces [meV/Å] | dipole norm [D] |"
              " polarizability [bohr³] |", "|---|---|---|---|---|",
@@ -1702,21 +1966,25 @@ def _dynamic_md(ev: dict, pol: dict | None, title: str) -> list[str]:
                  f"{p['intrinsic'][k]:g}" for k in keys) + f" | {p['intrinsic']['polarizability']}"
              " |"]
     for group in ("noaug", "aug"):
-        g = ev["groups"].get(group)
-        pg = (pol or {}).get("groups", {}).get(group)
-        for stat, label in (("mae", "MAE"), ("median", "median error")):
-            if g and g["dynamic"]:
-                lines.append(
-                    f"| {GROUP_LABEL[group]}: {label}, ours | " + " | ".join(
-                        _ms(g["dynamic"][stat][k], scale[k], digits[k]) for k in keys)
-                    + f" | {_ms(pg[stat], 1, 2) if pg else '–'} |")
-            lines.append(f"| {GROUP_LABEL[group]}: {label}, paper | " + " | ".join(
+        rows = [("ours", ev["groups"].get(group), (pol or {}).get("groups", {}).get(group))]
+        if base:
+            rows.append((label, base_groups.get(group),
+                         (base_pol or {}).get("groups", {}).get(group)))
+        for stat, stat_label in (("mae", "MAE"), ("median", "median error")):
+            for who, g, pg in rows:
+                if g and g["dynamic"]:
+                    lines.append(
+                        f"| {GROUP_LABEL[group]}: {stat_label}, {who} | " + " | ".join(
+                            _ms(g["dynamic"][stat][k], scale[k], digits[k]) for k in keys)
+                        + f" | {_ms(pg[stat], 1, 2) if pg else '–'} |")
+            lines.append(f"| {GROUP_LABEL[group]}: {stat_label}, paper | " + " | ".join(
                 _paper(p[group][stat][k]) for k in keys)
                 + f" | {_paper(p[group][stat]['polarizability'])} |")
-        if g and g["dynamic"]:
-            lines.append(f"| {GROUP_LABEL[group]}: error rate, ours |"
-                         f" {_ms(g['dynamic']['error_rate'], 100, 1)} % | | |"
-                         f" {_ms(pg['error_rate'], 100, 1) + ' %' if pg else '–'} |")
+        for who, g, pg in rows:
+            if g and g["dynamic"]:
+                lines.append(f"| {GROUP_LABEL[group]}: error rate, {who} |"
+                             f" {_ms(g['dynamic']['error_rate'], 100, 1)} % | | |"
+                             f" {_ms(pg['error_rate'], 100, 1) + ' %' if pg else '–'} |")
         lines.append(f"| {GROUP_LABEL[group]}: error rate, paper | {_paper(p[group]['error_rate'])}"
                      f" % | | | {_paper(p[group]['polarizability_error_rate'])} % |")
     return lines + [""]
@@ -1733,13 +2001,23 @@ def study_notes(cfg: dict) -> str:
     return Path(path).read_text()
 
 
-def markdown(result: dict, notes: str = "") -> str:
+def markdown(result: dict, notes: str = "", baseline: dict | None = None) -> str:
+    """results.md of ``result`` (:func:`stage_table`'s results.json). ``baseline``: the
+    earlier study's results.json (``result["baseline"]`` says where it is and names its rows,
+    e.g. v1), whose numbers every table then shows beside ours and the paper's."""
     d = result["data"]
-    lines = ["# mini-eQM7: the paper's molecular study", "",
+    info = result.get("baseline") or {}
+    label = info.get("label", "v1") if baseline else None
+    base = baseline or {}
+    lines = [f"# {result.get('title') or DEFAULT_TITLE}", "",
              f"Generated by `examples/eqm7/run_study.py table` on {result['generated']}."
              f" Status: **{result['status']}**.", ""]
     if notes:
         lines += [notes.strip(), ""]
+    if baseline:
+        lines += [f"Beside ours and the paper's numbers: **{label}**, the earlier study"
+                  f" (`{info.get('results')}`, generated {baseline.get('generated')}), on the"
+                  " same test molecules.", ""]
     lines += [
         f"- data: `{d['path']}`, {d['shards']} shard(s), {d['configurations']} configurations"
         f" (train {d['by_split']['train']['configurations']} of"
@@ -1763,30 +2041,52 @@ def markdown(result: dict, notes: str = "") -> str:
                          if set_name == "pbe0_subset" else "") + ".*", ""]
             continue
         n = next(iter(ev["groups"].values()))["n_structures"]
-        lines += _static_md(ev, f"{title}, {n} configurations")
-        pol = result.get("polarizability" if set_name == "test" else "polarizability_pbe0_subset")
-        lines += _dynamic_md(ev, pol, f"{title}, {n} configurations")
+        base_ev = (base.get("evaluation") or {}).get(set_name)
+        pol_key = "polarizability" if set_name == "test" else "polarizability_pbe0_subset"
+        pol, base_pol = result.get(pol_key), base.get(pol_key)
+        lines += _static_md(ev, f"{title}, {n} configurations", base_ev, label)
+        lines += _dynamic_md(ev, pol, f"{title}, {n} configurations", base_ev, base_pol, label)
         if pol:
             lines += [f"Polarizability: {pol['n_molecules']} molecules with a DFT reference"
                       " (our labeler, the labels' level, at its optimum);"
                       " ensemble (mean tensor of a group) MAE / median: "
                       + ", ".join(f"{GROUP_LABEL[g]} {_val(v['ensemble_mae'], 3)} /"
                                   f" {_val(v['ensemble_median'], 3)} bohr³"
-                                  for g, v in pol["groups"].items()) + ".", ""]
+                                  for g, v in pol["groups"].items())
+                      + (f" ({label}: " + ", ".join(
+                          f"{GROUP_LABEL[g]} {_val(v['ensemble_mae'], 3)} /"
+                          f" {_val(v['ensemble_median'], 3)}"
+                          for g, v in base_pol["groups"].items()) + ")" if base_pol else "")
+                      + "."]
+            iso = {g: v["isotropic_within_10pct"] for g, v in pol["groups"].items()
+                   if v.get("isotropic_within_10pct")}
+            if iso:
+                lines.append("Isotropic polarizability within 10 % of DFT's: " + ", ".join(
+                    f"{GROUP_LABEL[g]} {_ms(v)}" for g, v in iso.items())
+                    + f" of {pol['n_molecules']} molecules (mean (± std) over models).")
+            lines.append("")
     ir = result["ir"]
     lines += ["### Figure 4 and harmonic IR frequencies", ""]
     if ir:
         n_test = result["data"]["by_split"]["test"]["molecules"]
         of = (f"the {ir['n_molecules']} of {n_test} test molecules with a DFT Hessian so far"
               if ir["n_molecules"] < n_test else f"{ir['n_molecules']} test molecules")
+        base_ir = base.get("ir")
         lines += [f"Frequency MAE over {of} (modes matched in"
                   " ascending order), mean (± std) over models: "
                   + ", ".join(f"{GROUP_LABEL[g]} {_ms(v['frequency_mae'], 1, 1)} cm⁻¹"
                               for g, v in ir["groups"].items())
+                  + (f"; {label} ({base_ir['n_molecules']} molecules): " + ", ".join(
+                      f"{GROUP_LABEL[g]} {_ms(v['frequency_mae'], 1, 1)} cm⁻¹"
+                      f" ({len(v.get('excluded') or {})} excluded)"
+                      for g, v in base_ir["groups"].items()) if base_ir else "")
                   + f"; paper ~{PAPER['ir']['frequency_mae_cm-1']:g} cm⁻¹.", ""]
+        if ir.get("missing"):
+            lines += [f"Without a finished DFT Hessian (not compared yet):"
+                      f" {', '.join(ir['missing'])}.", ""]
         lines += _ir_bands_md(ir)
         lines += _uniform_scale_md(ir)
-        lines += _ir_molecules_md(ir)
+        lines += _ir_molecules_md(ir, base_ir, label)
         rmsd = [f"{GROUP_LABEL[g]} {_ms(v['rmsd_vs_dft'], 1, 3)} Å (largest"
                 f" {_val(v['rmsd_vs_dft_max'], 3)})" for g, v in ir["groups"].items()
                 if (v.get("rmsd_vs_dft") or {}).get("mean") is not None]
@@ -1804,6 +2104,7 @@ def markdown(result: dict, notes: str = "") -> str:
                           " spectra too): " + "; ".join(f"{k} ({_first_clause(why)})" for k, why
                                                        in v["excluded"].items()) + ".", ""]
         lines += [*_figure_md(result, ("figure4_ir.png",)), ""]
+        lines += _base_figures_md(result, baseline, ("figure4_ir.png",))
     else:
         lines += ["*not computed yet (dft and ir stages).*", ""]
     md = result["md"]
@@ -1811,10 +2112,14 @@ def markdown(result: dict, notes: str = "") -> str:
     if md:
         lines += ["| | runs | stable | transition | unstable | bonding changed | stopped |"
                   " largest jump [eV/atom] |", "|---|---|---|---|---|---|---|---|"]
+        base_md = (base.get("md") or {}).get("groups") or {}
         for g, v in md["groups"].items():
-            lines.append(f"| {GROUP_LABEL[g]} | {v['runs']} | {v['stable']} | {v['transition']}"
-                         f" | {v['unstable']} | {v['bonding_changed']} | {v['stopped']} |"
-                         f" {_val(v['max_jump_max'], 5)} |")
+            for who, row in (("", v), (f", {label}", base_md.get(g))):
+                if row:
+                    lines.append(
+                        f"| {GROUP_LABEL[g]}{who} | {row['runs']} | {row['stable']} |"
+                        f" {row['transition']} | {row['unstable']} | {row['bonding_changed']}"
+                        f" | {row['stopped']} | {_val(row['max_jump_max'], 5)} |")
         lines += ["", f"Paper: {PAPER['md']['noaug_unstable_pct']} % of the non-augmented runs"
                   " unstable, none of the augmented ones (the paper does not check bonding)."
                   " Panel a: slope against largest jump of every run with a trajectory to"
@@ -1823,14 +2128,65 @@ def markdown(result: dict, notes: str = "") -> str:
                   " has no point); panels b, c: the conserved quantity of one run of each"
                   " class.", ""]
         lines += [*_figure_md(result, ("figure3_md.png", "figure3_series.png")), ""]
+        lines += _base_figures_md(result, baseline, ("figure3_md.png", "figure3_series.png"))
     else:
         lines += ["*not run yet (md stage).*", ""]
     lines += differences_md(result)
-    lines += ["### Targets of issue 15", "", "| target | measured | met |", "|---|---|---|"]
-    for t in result["targets"]:
-        met = "–" if t["met"] is None else ("yes" if t["met"] else "no")
-        lines.append(f"| {t['target']} | {t['measured'] or 'not measured yet'} | {met} |")
+    lines += targets_md(result, label if baseline else None)
     return "\n".join(lines) + "\n"
+
+
+def _met(met: bool | None) -> str:
+    return "–" if met is None else ("yes" if met else "no")
+
+
+def targets_md(result: dict, label: str | None = None) -> list[str]:
+    """The targets table (``result["targets"]``, of issue 15 or 51: ``targets_of``); with
+    ``label`` the earlier study's values and verdicts beside ours (``result["baseline"]
+    ["targets"]``) and the ship rule's verdict (``result["ship"]``, :func:`ship_rule`)."""
+    issue = str(result.get("targets_of") or "issue15").replace("issue", "issue ")
+    base = {t["key"]: t for t in (result.get("baseline") or {}).get("targets") or ()
+            if "key" in t} if label else {}
+    if not base:
+        lines = [f"### Targets of {issue}", "", "| target | measured | met |", "|---|---|---|"]
+        for t in result["targets"]:
+            lines.append(f"| {t['target']} | {t['measured'] or 'not measured yet'} |"
+                         f" {_met(t['met'])} |")
+        return lines
+    ship = result.get("ship") or {}
+    missed = {n["key"]: n["why"] for n in ship.get("not_beaten", ())}
+    lines = [f"### Targets of {issue}", "",
+             f"| target | measured | met | {label} | {label} met | beats {label} where"
+             f" {label} misses |", "|---|---|---|---|---|---|"]
+    for t in result["targets"]:
+        b = base.get(t.get("key"), {})
+        beats = ("(met)" if b.get("met") is True else
+                 f"no: {missed[t['key']]}" if t.get("key") in missed else "yes")
+        lines.append(f"| {t['target']} | {t['measured'] or 'not measured yet'} |"
+                     f" {_met(t['met'])} | {b.get('measured') or 'not measured'} |"
+                     f" {_met(b.get('met'))} | {beats} |")
+    if ship:
+        verdict = ("**yes**: it beats it on every target it misses" if ship["ship"] else
+                   "**no**: not beaten on " + ", ".join(n["key"] for n in ship["not_beaten"]))
+        lines += ["", f"Ship rule (issue 51, item 7: the new augmented ensemble becomes the"
+                  f" pretrained `mini-eqm7` when it beats {label} on every target {label}"
+                  f" misses): {verdict}."]
+        if ship.get("regressed"):
+            lines.append("Met by " + label + " and not by ours (reported, not part of the"
+                         " rule): " + "; ".join(f"{r['key']} ({r['why']})"
+                                               for r in ship["regressed"]) + ".")
+    return lines
+
+
+def _base_figures_md(result: dict, baseline: dict | None, names: tuple[str, ...]) -> list[str]:
+    """Links to the earlier study's figures of ``names`` (drawn beside its results.md)."""
+    info = result.get("baseline") or {}
+    where = info.get("relative_dir")
+    shown = [n for n in names if n in ((baseline or {}).get("figures") or ())]
+    if not baseline or where is None or not shown:
+        return []
+    label = info.get("label", "v1")
+    return [f"{label}'s: " + ", ".join(f"[{n}]({Path(where) / n})" for n in shown) + ".", ""]
 
 
 def differences_md(result: dict) -> list[str]:
@@ -1917,6 +2273,9 @@ def stage_export(study: Study) -> Path:
     final = study.cfg.get("status") == "final"
     folder = Path(e["dir"]) if e.get("dir") else (
         PRETRAINED_DIR / name if final else study.workdir / "pretrained" / name)
+    if folder.resolve() == (PRETRAINED_DIR / name).resolve():
+        ship_check(results, name)
+        keep_previous(name, e.get("keep_previous_as"), study.log)
     results_md = Path(study.cfg.get("results_dir", HERE)) / "results.md"
     try:
         results_md = results_md.resolve().relative_to(ROOT)
@@ -1933,6 +2292,40 @@ def stage_export(study: Study) -> Path:
     study.log(f"export: {len(models)} {GROUP_LABEL[group]} models -> {folder} ({where};"
               f" {sum(f.stat().st_size for f in files) / 1e6:.2f} MB)")
     return folder
+
+
+def ship_check(results: dict, name: str) -> None:
+    """Stop an export into the package under ``name`` when the study's ship rule
+    (``results["ship"]``, written by the table stage of a study with a baseline and issue
+    51's targets) does not hold, naming the targets not beaten; a study without one (v1's)
+    passes."""
+    ship = results.get("ship")
+    if ship is None or ship["ship"]:
+        return
+    why = "; ".join(f"{n['key']} ({n['why']})" for n in ship["not_beaten"])
+    label = (results.get("baseline") or {}).get("label", "v1")
+    raise SystemExit(f"export: not shipped as {name}: it does not beat {label} on every target"
+                     f" {label} misses (issue 51, item 7): {why}. export.dir=FOLDER writes it"
+                     " elsewhere")
+
+
+def keep_previous(name: str, keep_as: str | None, log=print, root: Path | None = None) -> None:
+    """Before the package's ``name`` is replaced: copy its installed members and card to
+    ``keep_as`` (e.g. ``mini-eqm7-v1``) unless that name has a folder of its own already, so
+    users of the earlier ensemble load the same files under that name
+    (:data:`emlpack.pretrained.ALIASES` served it from ``name`` until now)."""
+    from emlpack.pretrained import PRETRAINED_DIR, model_files
+
+    root = root or PRETRAINED_DIR
+    if not keep_as or model_files(name, root) == [] or (root / keep_as).is_dir() and any(
+            (root / keep_as).glob("model-*.pt")):
+        return
+    shutil.copytree(root / name, root / keep_as, dirs_exist_ok=True)
+    card = root / keep_as / "card.md"
+    if card.is_file():
+        card.write_text(card.read_text().rstrip("\n") + f"\n\nShipped as `{name}` until"
+                        f" {dt.date.today():%Y-%m-%d}; loadable as `{keep_as}` since.\n")
+    log(f"export: the installed {name} kept as {keep_as} ({root / keep_as})")
 
 
 def spread_calibration(study: Study, models: list[Path]) -> tuple[dict | None, dict | None]:

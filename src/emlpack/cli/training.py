@@ -137,12 +137,14 @@ def add_pretrained(sub: Subparsers) -> None:
     p.add_argument("name", nargs="?", metavar="NAME", help="a pretrained name (omit: list)")
 
     def run(args: argparse.Namespace):
-        from emlpack.pretrained import KNOWN, PretrainedError, available, model_card
+        from emlpack.pretrained import KNOWN, PretrainedError, alias_of, available, model_card
 
         if args.name is None:
             installed = available()
             for name in sorted(set(KNOWN) | set(installed)):
                 status = "installed" if name in installed else "not installed"
+                if name in installed and alias_of(name):
+                    status += f", the same files as {alias_of(name)}"
                 print(f"{name} ({status}): {KNOWN.get(name, 'installed here')}")
             return 0
         if args.name not in available():

@@ -29,25 +29,54 @@ PRETRAINED_DIR = Path(__file__).resolve().parent
 KNOWN = {
     "mini-eqm7": "ensemble trained on the mini-eQM7 campaign data set (PBE0/aug-cc-pVTZ,"
                  " neutral closed-shell H/C/N/O molecules up to 7 heavy atoms)",
+    "mini-eqm7-v1": "the first mini-eqm7 ensemble (issue 15's final study: four augmented"
+                    " SchNet members), loadable by this name after a later one ships as"
+                    " mini-eqm7",
 }
+#: names served by another name's folder while they have none of their own: ``mini-eqm7-v1``
+#: is today's ``mini-eqm7`` (the same files) until v2 ships as ``mini-eqm7`` and the v1
+#: members move to ``pretrained/mini-eqm7-v1/`` (examples/eqm7/v2/README.md); a name's own
+#: folder, once installed, always wins over its alias
+ALIASES = {"mini-eqm7-v1": "mini-eqm7"}
 
 
 class PretrainedError(EmlpackError, ValueError):
     """An unknown pretrained name, or one whose files are not installed."""
 
 
-def model_files(name: str, root: Path | None = None) -> list[Path]:
-    """The checkpoints of pretrained model ``name`` (empty when none are installed)."""
-    folder = (root or PRETRAINED_DIR) / name
+def _members(folder: Path) -> list[Path]:
     return sorted(folder.glob("model-*.pt")) if folder.is_dir() else []
 
 
+def folder_of(name: str, root: Path | None = None) -> Path:
+    """The folder that serves pretrained ``name``: its own (``ROOT/NAME``) when it holds
+    members, else its alias's (:data:`ALIASES`) when it has one, else its own (missing)."""
+    root = root or PRETRAINED_DIR
+    own = root / name
+    if _members(own) or name not in ALIASES:
+        return own
+    return root / ALIASES[name]
+
+
+def alias_of(name: str, root: Path | None = None) -> str | None:
+    """The name whose files serve ``name`` (an alias without its own folder), else None."""
+    folder = folder_of(name, root)
+    return folder.name if folder.name != name else None
+
+
+def model_files(name: str, root: Path | None = None) -> list[Path]:
+    """The checkpoints of pretrained model ``name`` (empty when none are installed)."""
+    return _members(folder_of(name, root))
+
+
 def available(root: Path | None = None) -> list[str]:
-    """Names of the pretrained models installed with this copy of emlpack."""
+    """Names of the pretrained models installed with this copy of emlpack (an alias whose
+    target is installed among them)."""
     root = root or PRETRAINED_DIR
     if not root.is_dir():
         return []
-    return sorted(p.name for p in root.iterdir() if p.is_dir() and model_files(p.name, root))
+    names = {p.name for p in root.iterdir() if p.is_dir() and _members(p)}
+    return sorted(names | {a for a in ALIASES if model_files(a, root)})
 
 
 def resolve_model(model: str | Path, root: Path | None = None) -> tuple[list[Path], str]:
@@ -76,9 +105,13 @@ def resolve_model(model: str | Path, root: Path | None = None) -> tuple[list[Pat
 
 def model_card(name: str, root: Path | None = None) -> str:
     """The model card (Markdown) of pretrained model ``name``."""
-    path = (root or PRETRAINED_DIR) / name / "card.md"
+    path = folder_of(name, root) / "card.md"
     if not path.is_file():
         raise PretrainedError(f"pretrained model {name!r} has no card installed")
+    target = alias_of(name, root)
+    if target:
+        return (f"*{name}: the same files as {target} (emlpack.pretrained.ALIASES), whose card"
+                " follows.*\n\n" + path.read_text())
     return path.read_text()
 
 
