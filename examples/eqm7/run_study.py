@@ -26,8 +26,9 @@ temporary file and renamed, so a killed run leaves no half-written result)::
     md              NVT runs (500 fs, 300 K, 0.5 fs) per test molecule x model (at most
                     md.max_molecules of them) -> WORKDIR/md/MODEL/NAME/{trajectory.xyz,
                     analysis.json}
-    table           RESULTS_DIR/results.json + results.md (paper's numbers beside ours,
-                    issue 15's targets with the measured values) and the figures of the
+    table           RESULTS_DIR/results.json + results.md (paper's numbers beside ours, with
+                    a baseline the earlier study's too; issue 15's or 51's targets with the
+                    measured values) and the figures of the
                     chosen groups' models: Figure 4 PNG (aziridine, 3-(methylamino)but-2-enal),
                     Figure 3 PNGs
     export          the augmented ensemble as a pretrained model (float32 weights + a model
@@ -51,6 +52,12 @@ Usage (from the project root)::
     OMP_NUM_THREADS=1 python examples/eqm7/run_study.py all
     python examples/eqm7/run_study.py train evaluate table training.max_time_minutes=30
     python examples/eqm7/run_study.py dft dft.level=quick workdir=/tmp/eqm7
+
+A second study runs from a config of its own: ``--config examples/eqm7/v2/config.yaml`` (the
+study v2 of issue 51) names ``base: ../config.yaml`` and holds only what differs (workdir,
+results folder, recipe, ``targets: issue51``, ``baseline``: the earlier study's results.json,
+whose numbers every table shows beside ours and the paper's, and the ship rule against it
+that the export into the package obeys; examples/eqm7/v2/README.md).
 
 ``key=value`` arguments override the YAML config (dots for nesting, values parsed as YAML;
 ``train.KEY=VALUE`` entries are passed to the training config, see config.yaml). Each stage
