@@ -11,11 +11,19 @@ killed run loses at most the calculation in flight)::
                generated (round 0: random displacements; round r>0 needs `sample`), in
                interleaved field/stress order, until --until HH:MM (UTC) or the end
     reference  finite-difference DFT tensors from the 19 calculations -> WORKDIR/dft.json
-    train      eMLP training (Ewald, stress in the loss, constant reference) on the store
-    sample     next round's samples from the trained model's BO cell Hessian (600 K)
-    emlp       BO cell optimisation with the model, then lattice and tensors (response.py)
-    table      results.json + results.md (DFT vs eMLP vs deviation, paper's numbers alongside)
-    all        optimize, label, reference, train, emlp, table
+    train      the eMLP ensemble (Ewald, stress in the loss, constant reference) on the store:
+               ``training.members`` models (seeds training.seed + k) of ``training.family``,
+               from scratch or fine-tuned from ``training.init_from``, each in
+               WORKDIR/model_r<round>/<name>/seed<seed>; a finished member is not retrained
+    sample     next round's samples from member 0's BO cell Hessian (600 K)
+    emlp       per member: tensors at the DFT geometry, BO cell optimisation (convergence
+               recorded, a non-converged one warned about), lattice and clamped- and
+               relaxed-ion tensors at its optimum (response.py) -> WORKDIR/emlp.json
+    curve      learning curve: one model on the first N configurations (a fixed, seeded
+               order) for each N of ``learning_curve``, its eMLP values
+    table      results.json + results.md (DFT vs the ensemble's mean ± spread vs deviation,
+               targets within issue 52's tolerances, the learning curve, the paper's numbers)
+    all        optimize, label, reference, train, emlp, curve, table
 
 Usage (from the project root)::
 
@@ -63,7 +71,7 @@ from emlpack.units import (
 )
 
 HERE = Path(__file__).resolve().parent
-STAGES = ("optimize", "label", "reference", "train", "sample", "emlp", "table")
+STAGES = ("optimize", "label", "reference", "train", "sample", "emlp", "curve", "table")
 
 #: the paper's numbers (emlp-paper.tex, tables tab:beta_glycine_lattice and
 #: tab:beta_glycine_response_properties): PBE-D3(BJ), Quantum ESPRESSO, 3x3x3 k-points, and the
@@ -352,27 +360,39 @@ def stage_reference(study: Study) -> dict | None:
     return out
 
 
-def _train_store(study: Study) -> Path:
-    """A store with the training records (optionally without the FD calculations)."""
+def _train_records(study: Study) -> list[Structure]:
+    """The training records (optionally without the FD calculations or the field-set core
+    forces), in the store's order."""
     t = study.cfg.get("training", {})
     use_fd = bool(t.get("use_reference_calcs", True))
     field_forces = bool(t.get("field_set_forces", True))
-    path = study.workdir / "train_data.h5"
+    keep = [s for s in study.records() if use_fd or not _is_fd(s)]
+    for k, s in enumerate(keep):
+        s.info = {k: v for k, v in s.info.items() if isinstance(v, (str, float))}
+        if not field_forces and np.any(s.field):
+            # CP2K 2023.1 double-counts Berry-phase field forces in small cells: train
+            # the field set on energies and electron pairs only
+            keep[k] = s.copy(forces=None)
+    study.log(f"train: {len(keep)} labeled configurations (FD calculations included: {use_fd};"
+              f" field-set core forces used: {field_forces})")
+    return keep
+
+
+def subset_order(keys: list[str], seed: int) -> list[int]:
+    """The learning curve's fixed order of the records: by a seeded hash of each key, so the
+    first N are the same records whatever order the stores list them in."""
+    import hashlib
+
+    return sorted(range(len(keys)), key=lambda k: hashlib.sha256(
+        f"{seed}/{keys[k]}".encode()).hexdigest())
+
+
+def _write_store(path: Path, records: list[Structure]) -> Path:
     tmp = path.with_suffix(".tmp.h5")
     tmp.unlink(missing_ok=True)
     with DatasetStore(tmp, "a") as dst:
-        keep = [s for s in study.records() if use_fd or not _is_fd(s)]
-        for k, s in enumerate(keep):
-            s.info = {k: v for k, v in s.info.items() if isinstance(v, (str, float))}
-            if not field_forces and np.any(s.field):
-                # CP2K 2023.1 double-counts Berry-phase field forces in small cells: train
-                # the field set on energies and electron pairs only
-                keep[k] = s.copy(forces=None)
-        dst.append(keep)
-        n = len(keep)
+        dst.append(records)
     os.replace(tmp, path)
-    study.log(f"train: {n} labeled configurations (FD calculations included: {use_fd};"
-              f" field-set core forces used: {field_forces})")
     return path
 
 
@@ -383,26 +403,152 @@ def _round_dir(study: Study) -> Path:
     return study.workdir / f"model_r{max(rounds, default=0)}"
 
 
-def stage_train(study: Study) -> Path:
+def _family(study: Study) -> str:
+    """The short-range family of the study's models: ``training.family``, else the
+    fine-tune start's, else train.yaml's."""
+    t = study.cfg.get("training", {})
+    if t.get("family"):
+        return str(t["family"])
+    if t.get("init_from"):
+        from emlpack.nn.checkpoint import read_checkpoint
+
+        return read_checkpoint(_init_files(study)[0])["config"].get("family", "schnet")
+    from emlpack.train.config import load_config as load_train_config
+
+    return load_train_config(_resolve(t.get("config", HERE / "train.yaml")))["model"]["family"]
+
+
+def _ensemble_dir(study: Study) -> Path:
+    """The folder of the configured ensemble: ``model_r<round>/<name>``, the name
+    ``training.name`` or the family, ``-ft`` appended for a fine-tune (``init_from``)."""
+    t = study.cfg.get("training", {})
+    name = t.get("name") or (_family(study) + ("-ft" if t.get("init_from") else ""))
+    return _round_dir(study) / str(name)
+
+
+def _seeds(study: Study) -> list[int]:
+    """Training seeds of the members: ``training.seed`` (default the study's ``seed``) and
+    the next ``training.members - 1`` integers."""
+    t = study.cfg.get("training", {})
+    base = int(t.get("seed", study.cfg["seed"]))
+    n = int(t.get("members", 1))
+    if n < 1:
+        raise SystemExit(f"training.members must be >= 1, got {n}")
+    return [base + k for k in range(n)]
+
+
+def member_dirs(study: Study) -> list[Path]:
+    return [_ensemble_dir(study) / f"seed{s}" for s in _seeds(study)]
+
+
+def _init_files(study: Study) -> list[Path]:
+    """The checkpoints of ``training.init_from`` (a checkpoint, a folder of them or a
+    pretrained name such as mini-eqm7); member k starts from the (k mod n)-th."""
+    from emlpack.pretrained import PretrainedError, resolve_model
+
+    name = str(study.cfg["training"]["init_from"])
+    target = next((p for p in (Path(name), HERE / name) if p.exists()), name)
+    try:
+        return resolve_model(target)[0]
+    except PretrainedError as exc:
+        raise SystemExit(f"training.init_from: {exc}") from None
+
+
+def _train_model(study: Study, data: Path, out_dir: Path, seed: int, start: Path | None,
+                 n_configurations: int) -> Path:
+    """One model in ``out_dir`` (resumable: a folder with ``done.json`` is not trained
+    again; one with a ``last.pt`` goes on from it). ``start``: the fine-tune's checkpoint
+    (``training.init_weights``; the model section is the checkpoint's)."""
+    from emlpack.nn.checkpoint import read_checkpoint
+    from emlpack.nn.potential import ModelConfig
     from emlpack.train.config import load_config as load_train_config
     from emlpack.train.trainer import train
 
+    done = out_dir / "done.json"
+    if done.exists() and (out_dir / "best.pt").exists():
+        info = json.loads(done.read_text())
+        note = ("" if info.get("n_configurations") == n_configurations else
+                f"; the data now hold {n_configurations} configurations: remove {out_dir} to"
+                " retrain on them")
+        study.log(f"train: {out_dir} finished ({info.get('n_configurations')} configurations,"
+                  f" seed {info.get('seed')}), not retrained{note}")
+        return out_dir / "best.pt"
     t = study.cfg.get("training", {})
-    data = _train_store(study)
-    out_dir = _round_dir(study)
     overrides = [f"data.path={data}", f"output.dir={out_dir}", "data.reference=constant",
-                 "data.split=configuration", *t.get("overrides", [])]
+                 "data.split=configuration"]
+    if t.get("family"):
+        overrides.append(f"model.family={t['family']}")
+    overrides += [*t.get("overrides", []), f"training.seed={seed}"]
+    if start is not None:
+        overrides.append(f"training.init_weights={start}")
     cfg = load_train_config(_resolve(t.get("config", HERE / "train.yaml")), overrides)
+    if start is not None:  # the fine-tune's architecture is its start's
+        saved = ModelConfig.from_dict(read_checkpoint(start)["config"])
+        if t.get("family") and saved.family != t["family"]:
+            raise SystemExit(f"training.init_from={t['init_from']}: family {saved.family},"
+                             f" not training.family={t['family']}")
+        cfg["model"] = saved.to_dict()
+    t0 = time.perf_counter()
     best = train(cfg)
+    _write_json(done, {"best": str(best), "seed": seed, "n_configurations": n_configurations,
+                       "init_weights": str(start) if start else None,
+                       "family": cfg["model"]["family"], "time_s": time.perf_counter() - t0})
     study.log(f"train: best model {best}")
     return best
 
 
+def stage_train(study: Study) -> list[Path]:
+    """The ensemble (``training.members``, seeds ``training.seed`` + k), each member in
+    ``model_r<round>/<name>/seed<seed>``; a finished member is not retrained."""
+    dirs = member_dirs(study)
+    records = _train_records(study)
+    data = _write_store(study.workdir / "train_data.h5", records)
+    starts = _init_files(study) if study.cfg.get("training", {}).get("init_from") else None
+    return [_train_model(study, data, d, seed, starts[k % len(starts)] if starts else None,
+                         len(records))
+            for k, (d, seed) in enumerate(zip(dirs, _seeds(study), strict=True))]
+
+
 def _model_path(study: Study) -> Path:
-    path = _round_dir(study) / "best.pt"
+    """Member 0's model (the `sample` stage's)."""
+    path = member_dirs(study)[0] / "best.pt"
     if not path.exists():
         raise SystemExit(f"{path}: no trained model (run the train stage)")
     return path
+
+
+def learning_curve_sizes(study: Study, n_total: int) -> list[int]:
+    """``learning_curve`` sizes below the data's size (the full set is the ensemble's
+    member 0)."""
+    return sorted({int(n) for n in study.cfg.get("learning_curve") or [] if int(n) < n_total})
+
+
+def stage_curve(study: Study) -> dict | None:
+    """The learning curve: one model (member 0's seed and start) on the first N records of a
+    fixed, seeded order (:func:`subset_order`) for each N of ``learning_curve``, each model's
+    eMLP tensors (:func:`emlp_model`) -> WORKDIR/learning_curve.json; the full data set is
+    member 0 of the ensemble (the `train` and `emlp` stages)."""
+    if not study.cfg.get("learning_curve"):
+        study.log("curve: no learning_curve sizes configured")
+        return None
+    records = _train_records(study)
+    sizes = learning_curve_sizes(study, len(records))
+    order = subset_order([s.info["key"] for s in records], int(study.cfg["seed"]))
+    seed = _seeds(study)[0]
+    starts = _init_files(study) if study.cfg.get("training", {}).get("init_from") else None
+    points = []
+    for n in sizes:
+        out_dir = _ensemble_dir(study) / f"curve-n{n}"
+        out_dir.mkdir(parents=True, exist_ok=True)
+        data = _write_store(out_dir / "train_data.h5", [records[k] for k in order[:n]])
+        best = _train_model(study, data, out_dir, seed, starts[0] if starts else None, n)
+        points.append({"n_configurations": n, **emlp_model(study, best)})
+    full = member_dirs(study)[0] / "best.pt"
+    if full.exists():
+        points.append({"n_configurations": len(records), "all": True, **emlp_model(study, full)})
+    out = {"seed": seed, "order_seed": int(study.cfg["seed"]), "points": points}
+    _write_json(study.workdir / "learning_curve.json", out)
+    return out
 
 
 def stage_sample(study: Study) -> None:
@@ -434,18 +580,32 @@ def lattice(cell: np.ndarray) -> dict:
             "volume": float(abs(np.linalg.det(cell)))}
 
 
-def stage_emlp(study: Study) -> dict:
-    """BO cell optimisation with the model; tensors at the optimum and at the input geometry."""
+def emlp_model(study: Study, path: Path) -> dict:
+    """One model's eMLP values: pairs relaxed at the DFT geometry and the tensors there, then
+    the BO cell optimisation (``emlp`` settings) and the tensors at the model's own optimum
+    (clamped and relaxed ions); a non-converged optimisation gives a warning. Cached in the
+    model's folder (``emlp.json``) for the same weights, settings and DFT geometry."""
+    import hashlib
+
     from emlpack.nn.checkpoint import load_model
     from emlpack.pairs.relax import relax_pairs
     from emlpack.properties.optimize import optimize
     from emlpack.properties.response import crystal_response
 
     e = study.cfg.get("emlp", {})
-    model = load_model(_model_path(study))
     s0 = study.reference
+    digest = hashlib.sha256(Path(path).read_bytes())
+    digest.update(json.dumps(e, sort_keys=True, default=str).encode())
+    digest.update(np.ascontiguousarray(s0.positions, float).tobytes())
+    digest.update(np.ascontiguousarray(s0.cell, float).tobytes())
+    cache = Path(path).parent / "emlp.json"
+    cached = _read_json(cache)
+    if cached is not None and cached.get("key") == digest.hexdigest():
+        study.log(f"emlp: {path}: done before (same weights, settings and geometry)")
+        return cached["result"]
+    model = load_model(path)
     r = relax_pairs(model, s0, fmax=1e-6)[0]
-    out: dict = {"model": str(_model_path(study))}
+    out: dict = {"model": str(path), "warnings": []}
     if r.failed:
         out["input_geometry"] = {"error": f"pair relaxation failed: {r.reason}"}
     else:
@@ -456,6 +616,8 @@ def stage_emlp(study: Study) -> dict:
         except (np.linalg.LinAlgError, ValueError) as exc:
             out["input_geometry"] = {"error": f"response failed: {exc}"}
         s0 = s_in
+    if "error" in out["input_geometry"]:
+        out["warnings"].append(f"{path}: at the DFT geometry: {out['input_geometry']['error']}")
     t0 = time.perf_counter()
     res = optimize(model, s0, cell=True, fmax=float(e.get("fmax", 1e-4)),
                    smax=float(e.get("smax", 1e-6)),
@@ -470,14 +632,80 @@ def stage_emlp(study: Study) -> dict:
         opt.update(crystal_response(model, res.structure).as_dict())
     except (np.linalg.LinAlgError, ValueError) as exc:
         opt["error"] = f"response failed: {exc}"
+        out["warnings"].append(f"{path}: at its optimised cell: {opt['error']}")
     out["optimized"] = opt
-    _write_json(study.workdir / "emlp.json", out)
-    study.log(f"emlp: optimisation converged={res.converged} ({res.reason or 'ok'}),"
+    if not res.converged:
+        out["warnings"].insert(0, (
+            f"{path}: BO cell optimisation NOT converged after {res.iterations} iterations"
+            f" ({res.reason or 'no reason given'}; max force {res.max_force:.3g} eV/Å, max"
+            f" stress {res.max_stress * EV_PER_A3_IN_GPA:.3g} GPa): its optimised-cell values"
+            " belong to a non-stationary structure"))
+    for w in out["warnings"]:
+        study.log(f"emlp: WARNING: {w}")
+    study.log(f"emlp: {path}: optimisation converged={res.converged} ({res.reason or 'ok'}),"
               f" lattice {lattice(res.structure.cell)}")
+    _write_json(cache, {"key": digest.hexdigest(), "result": out})
+    return out
+
+
+def stage_emlp(study: Study) -> dict:
+    """Every member's eMLP values (:func:`emlp_model`) -> WORKDIR/emlp.json: ``members`` (one
+    entry each, with its seed) and ``warnings`` (the non-converged optimisations among them)."""
+    dirs = member_dirs(study)
+    missing = [d for d in dirs if not (d / "best.pt").exists()]
+    if missing:
+        raise SystemExit(f"{missing[0] / 'best.pt'}: no trained model (run the train stage)")
+    members = [{"member": k, "seed": seed, **emlp_model(study, d / "best.pt")}
+               for k, (d, seed) in enumerate(zip(dirs, _seeds(study), strict=True))]
+    out = {"ensemble": str(_ensemble_dir(study)), "family": _family(study),
+           "init_from": study.cfg.get("training", {}).get("init_from"), "members": members,
+           "warnings": [w for m in members for w in m.get("warnings", [])]}
+    _write_json(study.workdir / "emlp.json", out)
+    n_conv = sum(bool(m["optimized"]["converged"]) for m in members)
+    study.log(f"emlp: {len(members)} members, {n_conv} BO cell optimisations converged")
     return out
 
 
 # ---------------------------------------------------------------------- table
+LATTICE_KEYS = ("a", "b", "c", "beta", "volume")
+#: issue 52's targets, eMLP vs our DFT: (tolerance in % of the DFT value, absolute tolerance
+#: or None); a value within either counts. 22 quantities: the lattice, the 3 diagonal eps_inf,
+#: C11-C66 and the 8 allowed e components
+TOLERANCES: dict[str, tuple[float, float | None]] = {
+    **{k: (2.0, None) for k in LATTICE_KEYS},
+    **{f"eps{i}{i}": (10.0, None) for i in (1, 2, 3)},
+    **{f"C{i}{i}": (15.0, None) for i in range(1, 7)},
+    **{f"e{k}": (25.0, 0.02) for k in PIEZO_KEYS},  # C/m^2
+}
+#: the eMLP columns of the table: clamped-ion tensors at the DFT geometry (pairs relaxed),
+#: lattice and clamped-ion tensors at the model's own BO-optimised cell, relaxed-ion tensors
+#: there
+COLUMNS = ("emlp_clamped_at_dft_geometry", "emlp_clamped", "emlp_relaxed_ion")
+
+
+def within_tolerance(name: str, ref: float | None, value: float | None) -> bool | None:
+    """Whether ``value`` is within the :data:`TOLERANCES` of ``ref`` (None: no target for
+    ``name`` or a value missing)."""
+    tol = TOLERANCES.get(name)
+    dev = _dev(ref, value)
+    if tol is None or dev is None:
+        return None
+    pct, absolute = tol
+    return abs(dev) <= pct or (absolute is not None and abs(value - ref) <= absolute)
+
+
+def tolerance_count(ref: dict, values: dict, names=None) -> dict:
+    """The targets (``names``, default all of :data:`TOLERANCES`) that ``values`` meet against
+    ``ref``: ``within``, ``outside``, ``missing`` (no value to compare) and their number."""
+    out: dict = {"within": [], "outside": [], "missing": []}
+    for n in names or TOLERANCES:
+        ok = within_tolerance(n, ref.get(n), values.get(n))
+        out["missing" if ok is None else "within" if ok else "outside"].append(n)
+    out["n_within"] = len(out["within"])
+    out["n_targets"] = len(names or TOLERANCES)
+    return out
+
+
 def _flat(prefix: str, d: dict | None, kind: str) -> dict[str, float]:
     """Named components (eps11, C11, e14, d14, ...) of a tensor dict in report units."""
     if not d or "error" in d and len(d) == 1:
@@ -502,8 +730,57 @@ def _flat(prefix: str, d: dict | None, kind: str) -> dict[str, float]:
         out[f"d{k}"] = float(dd[int(k[0]) - 1, int(k[1]) - 1])
     if "lattice" in d:
         lat = d["lattice"]
-        out.update({k: float(lat[k]) for k in ("a", "b", "c", "beta", "volume")})
+        out.update({k: float(lat[k]) for k in LATTICE_KEYS})
     return out
+
+
+def emlp_columns(result: dict) -> dict[str, dict[str, float]]:
+    """One model's values (:func:`emlp_model`'s result) by table column (:data:`COLUMNS`):
+    the lattice only at the model's own optimum (at the DFT geometry it is DFT's)."""
+    opt = result.get("optimized") or {}
+    inp = result.get("input_geometry") or {}
+    tensors = "stiffness_voigt_GPa"
+    cols = {"emlp_clamped_at_dft_geometry": _flat("emlp", inp if tensors in inp else None,
+                                                  "clamped"),
+            "emlp_clamped": _flat("emlp", opt if tensors in opt else None, "clamped"),
+            "emlp_relaxed_ion": _flat("emlp", opt if tensors in opt else None, "relaxed")}
+    for k in LATTICE_KEYS:
+        cols["emlp_clamped_at_dft_geometry"].pop(k, None)
+        cols["emlp_relaxed_ion"].pop(k, None)
+    if "lattice" in opt:  # also when the tensors there failed
+        cols["emlp_clamped"].update({k: float(opt["lattice"][k]) for k in LATTICE_KEYS})
+    return cols
+
+
+def ensemble_columns(members: list[dict]) -> tuple[dict, dict, dict, list[str]]:
+    """The ensemble's mean and spread (population std over members, as
+    :func:`emlpack.calculators.ensemble.member_spread`) of every value of every column, the
+    members that entered each column, and notes. The optimised-cell columns average the
+    members whose BO cell optimisation converged (all members when none did, with a note)."""
+    from emlpack.calculators.ensemble import member_spread
+
+    converged = [k for k, m in enumerate(members) if (m.get("optimized") or {}).get("converged")]
+    notes = []
+    if len(converged) < len(members):
+        use = converged or list(range(len(members)))
+        notes.append(
+            f"BO cell optimisation converged for {len(converged)} of {len(members)} members;"
+            " the optimised-cell columns (eMLP opt., eMLP rel.) are "
+            + (f"the mean of members {', '.join(map(str, use))}" if converged else
+               "the mean of all members, every one a NON-STATIONARY structure"))
+    else:
+        use = converged
+    per_member = [emlp_columns(m) for m in members]
+    mean, std, used = {}, {}, {}
+    for col in COLUMNS:
+        take = range(len(members)) if col == "emlp_clamped_at_dft_geometry" else use
+        mean[col], std[col], used[col] = {}, {}, list(take)
+        names = {n for k in take for n in per_member[k][col]}
+        for n in names:
+            vals = [per_member[k][col][n] for k in take if n in per_member[k][col]]
+            mean[col][n] = float(np.mean(vals))
+            std[col][n] = float(member_spread([{"v": v} for v in vals])["v_std"])
+    return mean, std, used, notes
 
 
 def _dev(a: float | None, b: float | None) -> float | None:
@@ -512,10 +789,21 @@ def _dev(a: float | None, b: float | None) -> float | None:
     return 100.0 * (b - a) / abs(a)
 
 
+#: the quantities of the table, in order
+NAMES = (list(LATTICE_KEYS) + ["eps11", "eps22", "eps33"] + [f"C{k}" for k in STIFF_KEYS]
+         + [f"e{k}" for k in PIEZO_KEYS] + [f"d{k}" for k in PIEZO_KEYS])
+#: the targets that a column can meet: at the DFT geometry the lattice is DFT's own
+TARGETS = {"emlp_clamped_at_dft_geometry": [n for n in TOLERANCES if n not in LATTICE_KEYS],
+           "emlp_clamped": list(TOLERANCES)}
+
+
 def stage_table(study: Study, out_dir: Path | None = None) -> dict:
     out_dir = Path(out_dir or study.cfg.get("results_dir", HERE))
     dft = _read_json(study.workdir / "dft.json")
     emlp = _read_json(study.workdir / "emlp.json")
+    if emlp is not None and "members" not in emlp:  # one model, written before the ensembles
+        emlp = {"members": [emlp], "warnings": []}
+    members = (emlp or {}).get("members") or []
     recs = study.records()
     failures = study.failures()
     n_fd = sum(_is_fd(s) for s in recs)
@@ -525,27 +813,24 @@ def stage_table(study: Study, out_dir: Path | None = None) -> dict:
     n_stress = sum(not _is_fd(s) and s.stress is not None for s in recs) - n_opt
     dft_v = _flat("dft", dft, "dft")
     if dft:
-        dft_v.update({k: float(dft["lattice"][k]) for k in ("a", "b", "c", "beta", "volume")})
-    opt = (emlp or {}).get("optimized", {})
-    cl_v = _flat("emlp", opt if "stiffness_voigt_GPa" in opt else None, "clamped")
-    rel_v = _flat("emlp", opt if "stiffness_voigt_GPa" in opt else None, "relaxed")
-    inp = (emlp or {}).get("input_geometry", {})
-    cl_in = _flat("emlp", inp if "stiffness_voigt_GPa" in inp else None, "clamped")
-    for k in ("a", "b", "c", "beta", "volume"):  # the input cell itself: nothing to compare
-        cl_in.pop(k, None)
-        rel_v.pop(k, None)
-    names = (["a", "b", "c", "beta", "volume", "eps11", "eps22", "eps33"]
-             + [f"C{k}" for k in STIFF_KEYS] + [f"e{k}" for k in PIEZO_KEYS]
-             + [f"d{k}" for k in PIEZO_KEYS])
+        dft_v.update({k: float(dft["lattice"][k]) for k in LATTICE_KEYS})
+    mean, std, used, notes = ensemble_columns(members) if members else ({}, {}, {}, [])
     rows = []
-    for n in names:
-        row = {"quantity": n, "dft": dft_v.get(n), "emlp_clamped": cl_v.get(n),
-               "deviation_pct": _dev(dft_v.get(n), cl_v.get(n)),
-               "emlp_clamped_at_dft_geometry": cl_in.get(n),
-               "deviation_at_dft_geometry_pct": _dev(dft_v.get(n), cl_in.get(n)),
-               "emlp_relaxed_ion": rel_v.get(n),
-               "paper_pbe": PAPER["pbe"].get(n), "paper_emlp": PAPER["emlp"].get(n)}
+    for n in NAMES:
+        row = {"quantity": n, "dft": dft_v.get(n)}
+        for col in COLUMNS:
+            row[col] = mean.get(col, {}).get(n)
+            row[f"{col}_std"] = std.get(col, {}).get(n)
+        row.update({
+            "deviation_pct": _dev(dft_v.get(n), row["emlp_clamped"]),
+            "deviation_at_dft_geometry_pct": _dev(dft_v.get(n),
+                                                  row["emlp_clamped_at_dft_geometry"]),
+            "within_tolerance": within_tolerance(n, dft_v.get(n), row["emlp_clamped"]),
+            "within_tolerance_at_dft_geometry": within_tolerance(
+                n, dft_v.get(n), row["emlp_clamped_at_dft_geometry"]),
+            "paper_pbe": PAPER["pbe"].get(n), "paper_emlp": PAPER["emlp"].get(n)})
         rows.append(row)
+    warnings = [*(emlp or {}).get("warnings", []), *notes]
     summary = {
         "labeler_level": study.level(),
         "labeler_settings": getattr(getattr(study.labeler(), "settings", None), "to_dict",
@@ -560,15 +845,28 @@ def stage_table(study: Study, out_dir: Path | None = None) -> dict:
         "total_dft_time_h": float(np.nansum(walls) / 3600.0) if len(walls) else None,
         "fd_settings": {"field_step_au": study.fd.field_step / FIELD_AU_IN_V_PER_A,
                         "strain_step": study.fd.strain_step, "points": study.fd.points},
-        "emlp_optimisation": {k: opt.get(k) for k in ("converged", "iterations", "reason",
-                                                      "max_force", "max_stress_GPa")},
+        "ensemble": {k: (emlp or {}).get(k) for k in ("ensemble", "family", "init_from")}
+        | {"n_members": len(members), "members_in_columns": used},
+        "emlp_optimisation": [
+            {"member": m.get("member", k), "seed": m.get("seed"),
+             **{key: (m.get("optimized") or {}).get(key) for key in (
+                 "converged", "iterations", "reason", "max_force", "max_stress_GPa")}}
+            for k, m in enumerate(members)],
+        "warnings": warnings,
+        "tolerance": {col: tolerance_count(dft_v, mean.get(col, {}), TARGETS[col])
+                      for col in TARGETS},
         "training": _training_summary(study),
+        "learning_curve": _learning_curve_rows(study, dft_v),
     }
     train_data = study.workdir / "train_data.h5"
     if train_data.exists():
         with DatasetStore(train_data, "r") as store:
             summary["n_training_configurations"] = len(store)
+    for w in warnings:
+        study.log(f"table: WARNING: {w}")
     result = {"summary": summary, "rows": rows, "dft": dft, "emlp": emlp,
+              "tolerances": {k: {"percent": p, "absolute": a}
+                             for k, (p, a) in TOLERANCES.items()},
               "units": {"lattice": "Å, degrees, Å^3", "C": "GPa", "e": "C/m^2", "d": "pm/V"}}
     out_dir.mkdir(parents=True, exist_ok=True)
     _write_json(out_dir / "results.json", result)
@@ -577,21 +875,36 @@ def stage_table(study: Study, out_dir: Path | None = None) -> dict:
     return result
 
 
-def _training_summary(study: Study) -> dict:
-    run = _round_dir(study)
-    log = run / "log.csv"
-    if not log.exists():
-        return {}
+def _learning_curve_rows(study: Study, dft_v: dict) -> list[dict]:
+    """learning_curve.json's models, each with its targets met (:func:`tolerance_count`)."""
+    curve = _read_json(study.workdir / "learning_curve.json")
+    out = []
+    for p in (curve or {}).get("points", []):
+        cols = emlp_columns(p)
+        out.append({"n_configurations": p["n_configurations"], "all": bool(p.get("all")),
+                    "model": p.get("model"),
+                    "converged": (p.get("optimized") or {}).get("converged"),
+                    **{col: tolerance_count(dft_v, cols[col], TARGETS[col])
+                       for col in TARGETS}})
+    return out
+
+
+def _training_summary(study: Study) -> list[dict]:
+    """Each member's training (best epoch and validation errors from its log.csv)."""
     import csv
 
-    rows = list(csv.DictReader(log.open()))
-    if not rows:
-        return {}
-    best = min(rows, key=lambda r: float(r["val_loss"]))
-    keep = ("epoch", "val_loss", "val_energy_mae", "val_forces_mae", "val_pair_forces_mae",
-            "val_stress_mae")
-    return {"run": str(run), "epochs": len(rows),
-            "best": {k: float(best[k]) for k in keep if k in best and best[k] != ""}}
+    out = []
+    for run in member_dirs(study):
+        log = run / "log.csv"
+        rows = list(csv.DictReader(log.open())) if log.exists() else []
+        if not rows:
+            continue
+        best = min(rows, key=lambda r: float(r["val_loss"]))
+        keep = ("epoch", "val_loss", "val_energy_mae", "val_forces_mae", "val_pair_forces_mae",
+                "val_stress_mae")
+        out.append({"run": str(run), "epochs": len(rows),
+                    "best": {k: float(best[k]) for k in keep if k in best and best[k] != ""}})
+    return out
 
 
 def _fmt(v: float | None, n: str) -> str:
@@ -604,16 +917,36 @@ def _fmt(v: float | None, n: str) -> str:
     return f"{v:.4g}" if abs(v) < 1000 else f"{v:.1f}"
 
 
+def _cell(row: dict, col: str, n: str, n_members: int) -> str:
+    """A column's ensemble mean, ``± spread`` when the ensemble has more than one member."""
+    text = _fmt(row[col], n)
+    if n_members > 1 and row[col] is not None and row.get(f"{col}_std") is not None:
+        text += f" ± {_fmt(row[f'{col}_std'], n)}"
+    return text
+
+
+def _dev_cell(row: dict, dev: str, ok: str) -> str:
+    mark = {True: " ✓", False: " ✗"}.get(row[ok], "")
+    return _fmt(row[dev], "%") + mark
+
+
 def markdown(result: dict, notes: str = "") -> str:
     s = result["summary"]
     geometry = ("the DFT optimum (`optimize` stage: positions and cell, P2₁)"
                 if s.get("dft_geometry") == "optimized" else
                 "the input geometry (the paper's QE cell and positions, not re-optimised at our"
                 " level)")
+    ens = s.get("ensemble") or {}
+    n_members = int(ens.get("n_members") or 0)
     lines = ["# beta-glycine: DFT vs eMLP", "",
              "Generated by `examples/beta_glycine/run_study.py table`.", ""]
     if notes:
         lines += [notes.strip(), ""]
+    if s.get("warnings"):
+        lines += ["**Warnings:**", "", *(f"- ⚠ {w}" for w in s["warnings"]), ""]
+    opt_lines = [f"member {o['member']} (seed {o['seed']}): converged={o['converged']},"
+                 f" {o['iterations']} iterations, {o['reason'] or 'ok'}"
+                 for o in s.get("emlp_optimisation") or []]
     lines += [
         f"- DFT level: `{s['labeler_level']}`",
         f"- labeled configurations: {s['n_configurations']} ({s['n_fd_calculations']}"
@@ -623,7 +956,9 @@ def markdown(result: dict, notes: str = "") -> str:
         f"- wall time per point: {_fmt(s['wall_time_per_point_s'], 't')} s;"
         f" total DFT time {_fmt(s['total_dft_time_h'], 't')} h",
         f"- finite differences: {s['fd_settings']}",
-        f"- eMLP BO cell optimisation: {s['emlp_optimisation']}",
+        f"- eMLP ensemble: {n_members} member(s), family {ens.get('family')}, start"
+        f" {ens.get('init_from') or 'random (from scratch)'} (`{ens.get('ensemble')}`)",
+        f"- eMLP BO cell optimisation: {'; '.join(opt_lines) or '–'}",
         f"- training: {s['training']}", "",
         "Columns: **DFT** = our finite-difference DFT (ion-clamped ε, clamped-ion C and proper e,"
         f" d = e:C⁻¹ of those) at {geometry}; **eMLP@DFT** = eMLP clamped-ion tensors at that same"
@@ -631,29 +966,43 @@ def markdown(result: dict, notes: str = "") -> str:
         " **eMLP opt.** = eMLP lattice and clamped-ion tensors at its own BO-optimised cell"
         " (dev. %); **eMLP rel.** = eMLP relaxed-ion tensors there (the paper's kind for C, e,"
         " d); **paper PBE / paper eMLP** = the paper's numbers (relaxed-ion C, e, d; other DFT"
-        " settings, not expected to match).", "",
+        " settings, not expected to match). eMLP values are the ensemble mean ± the spread"
+        " (population standard deviation over the members); ✓/✗: within/outside issue 52's"
+        " tolerance (lattice 2 %, ε 10 %, C11-C66 15 %, e 25 % or 0.02 C/m²).", "",
         "| quantity | DFT | eMLP@DFT | dev. % | eMLP opt. | dev. % | eMLP rel. | paper PBE |"
         " paper eMLP |",
         "|---|---|---|---|---|---|---|---|---|"]
     for r in result["rows"]:
         n = r["quantity"]
         lines.append(
-            f"| {n} | {_fmt(r['dft'], n)} | {_fmt(r['emlp_clamped_at_dft_geometry'], n)} |"
-            f" {_fmt(r['deviation_at_dft_geometry_pct'], '%')} |"
-            f" {_fmt(r['emlp_clamped'], n)} | {_fmt(r['deviation_pct'], '%')} |"
-            f" {_fmt(r['emlp_relaxed_ion'], n)} | {_fmt(r['paper_pbe'], n)} |"
+            f"| {n} | {_fmt(r['dft'], n)} |"
+            f" {_cell(r, 'emlp_clamped_at_dft_geometry', n, n_members)} |"
+            f" {_dev_cell(r, 'deviation_at_dft_geometry_pct', 'within_tolerance_at_dft_geometry')}"
+            f" | {_cell(r, 'emlp_clamped', n, n_members)} |"
+            f" {_dev_cell(r, 'deviation_pct', 'within_tolerance')} |"
+            f" {_cell(r, 'emlp_relaxed_ion', n, n_members)} | {_fmt(r['paper_pbe'], n)} |"
             f" {_fmt(r['paper_emlp'], n)} |")
-
-    def split(key: str) -> tuple[list[str], list[str]]:
-        rows = [r for r in result["rows"] if r[key] is not None]
-        return ([r["quantity"] for r in rows if abs(r[key]) <= 10],
-                [r["quantity"] for r in rows if abs(r[key]) > 10])
-
-    for key, label in (("deviation_at_dft_geometry_pct", "eMLP@DFT (same geometry)"),
-                       ("deviation_pct", "eMLP at its own optimised cell")):
-        inside, outside = split(key)
-        lines += ["", f"{label}: within 10 % of our DFT: {', '.join(inside) or 'none'};"
-                  f" outside: {', '.join(outside) or 'none'}."]
+    for col, label in (("emlp_clamped_at_dft_geometry", "eMLP@DFT (same geometry)"),
+                       ("emlp_clamped", "eMLP at its own optimised cell")):
+        t = s["tolerance"][col]
+        lines += ["", f"{label}: {t['n_within']} of {t['n_targets']} targets within tolerance"
+                  f" of our DFT: {', '.join(t['within']) or 'none'}; outside:"
+                  f" {', '.join(t['outside']) or 'none'}"
+                  + (f"; not compared: {', '.join(t['missing'])}" if t["missing"] else "")
+                  + "."]
+    if s.get("learning_curve"):
+        lines += ["", "## Learning curve", "",
+                  "One model (member 0's seed and start) per size, on the first N"
+                  " configurations of a fixed, seeded order; targets within tolerance of our"
+                  " DFT.", "",
+                  "| configurations | eMLP@DFT | eMLP opt. | BO optimisation converged |",
+                  "|---|---|---|---|"]
+        for p in s["learning_curve"]:
+            at, op = p["emlp_clamped_at_dft_geometry"], p["emlp_clamped"]
+            lines.append(f"| {p['n_configurations']}{' (all)' if p['all'] else ''} |"
+                         f" {at['n_within']} of {at['n_targets']} |"
+                         f" {op['n_within']} of {op['n_targets']} |"
+                         f" {'yes' if p['converged'] else 'NO ⚠'} |")
     lines.append("")
     return "\n".join(lines)
 
@@ -695,11 +1044,13 @@ def _read_json(path: Path) -> dict | None:
 
 def run(stages: list[str], cfg: dict, labeler: Callable | None = None,
         until: dt.datetime | None = None, log=print, shard: tuple[int, int] = (0, 1)) -> Study:
-    """Run ``stages`` in order (``"all"``: label, reference, train, emlp, table)."""
+    """Run ``stages`` in order (``"all"``: optimize, label, reference, train, emlp, curve,
+    table)."""
     study = Study(copy.deepcopy(cfg), labeler, log)
     order = []
     for s in stages:
-        order += (["optimize", "label", "reference", "train", "emlp", "table"] if s == "all"
+        order += (["optimize", "label", "reference", "train", "emlp", "curve", "table"]
+                  if s == "all"
                   else [s])
     for s in order:
         if s not in STAGES:
@@ -708,7 +1059,8 @@ def run(stages: list[str], cfg: dict, labeler: Callable | None = None,
          "label": lambda: stage_label(study, until, shard),
          "reference": lambda: stage_reference(study), "train": lambda: stage_train(study),
          "sample": lambda: stage_sample(study),
-         "emlp": lambda: stage_emlp(study), "table": lambda: stage_table(study)}[s]()
+         "emlp": lambda: stage_emlp(study), "curve": lambda: stage_curve(study),
+         "table": lambda: stage_table(study)}[s]()
     return study
 
 
