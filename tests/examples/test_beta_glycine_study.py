@@ -56,7 +56,7 @@ def test_study_runs_end_to_end_and_resumes(tmp_path, fake):
         # their neighbour list at the result; before, a stale list hid it), seed 1 has none
         "training.overrides=['model.n_features=8', 'model.n_filters=8', 'model.n_rbf=8',"
         " 'training.max_epochs=2', 'training.batch_size=8', 'model.elements=[1, 8]']",
-        "training.seed=1",
+        "training.seed=1", "training.members=1",
         "emlp.max_iterations=3", "emlp.fmax=1e-3", "emlp.smax=1e-4",
         "optimization.enabled=true", "optimization.fmax=0.02", "optimization.symprec=null",
     ])
@@ -178,7 +178,7 @@ def _config(labeled, tmp_path, *extra):
     return study_mod.load_config(ROOT / "examples" / "beta_glycine" / "config.yaml", [
         *overrides, f"workdir={tmp_path / 'run'}", f"results_dir={tmp_path / 'out'}",
         "emlp.max_iterations=1", "emlp.fmax=1e-3", "emlp.smax=1e-4", "emlp.verbose=false",
-        *extra])
+        "training.members=1", *extra])
 
 
 def test_tolerances_are_the_issues_22_targets():
@@ -299,6 +299,7 @@ def test_painn_member_and_fine_tune_on_the_crystal(tmp_path, labeled):
         assert np.isfinite(np.array(opt[key])).all(), key
     tuned = study_mod.load_config(ROOT / "examples" / "beta_glycine" / "config.yaml", [
         *labeled[2], f"workdir={tmp_path / 'run'}", f"training.init_from={first / 'best.pt'}",
+        "training.members=1", "training.family=null",  # the start's family
         "training.overrides=['training.max_epochs=1', 'training.compile=false',"
         " 'training.threads=1', 'training.batch_size=8']"])
     study_mod.run(["train"], tuned, labeler=labeler, log=lambda m: None)
