@@ -576,8 +576,8 @@ def lattice(cell: np.ndarray) -> dict:
     from ase.geometry import cell_to_cellpar
 
     a, b, c, alpha, beta, gamma = cell_to_cellpar(cell)
-    return {"a": a, "b": b, "c": c, "alpha": alpha, "beta": beta, "gamma": gamma,
-            "volume": float(abs(np.linalg.det(cell)))}
+    return {"a": float(a), "b": float(b), "c": float(c), "alpha": float(alpha),
+            "beta": float(beta), "gamma": float(gamma), "volume": float(abs(np.linalg.det(cell)))}
 
 
 def emlp_model(study: Study, path: Path) -> dict:
