@@ -12,6 +12,7 @@ no calculation) and goes on from the last one::
 
     python examples/beta_glycine/campaign_job.py optimize --commit
     python examples/beta_glycine/campaign_job.py label --shard 0/2 --commit   # and 1/2
+    python examples/beta_glycine/campaign_job.py label --reference-only --commit  # FD only
     python examples/beta_glycine/campaign_job.py card      # datasets/beta-glycine/README.md
 
 ``key=value`` arguments override ``config.yaml`` as for ``run_study.py``. The optimisation's
@@ -157,6 +158,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--shard-min-records", type=int, default=SHARD_MIN_RECORDS,
                    help="fewest new records per shard before the end")
     p.add_argument("--commit", action="store_true", help="commit every new shard")
+    p.add_argument("--reference-only", action="store_true",
+                   help="label: only the finite-difference reference calculations (19)")
     args = p.parse_args(argv)
     extra = OPTIMIZE if args.action == "optimize" else []
     cfg = run_study.load_config(args.config, [*extra, *args.overrides])
@@ -181,7 +184,8 @@ def main(argv: list[str] | None = None) -> None:
             if args.action == "optimize":
                 run_study.stage_optimize(study)
             else:
-                run_study.stage_label(study, shard=(index, n_shards))
+                run_study.stage_label(study, shard=(index, n_shards),
+                                      reference_only=args.reference_only)
         finally:
             with DatasetStore(work, "a") as store:
                 exporter.flush(store)

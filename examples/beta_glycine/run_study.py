@@ -291,8 +291,9 @@ def stage_optimize(study: Study) -> dict | None:
 
 
 def stage_label(study: Study, until: dt.datetime | None = None,
-                shard: tuple[int, int] = (0, 1)) -> dict:
-    """Label the FD reference calculations, then the round samples, skipping stored keys.
+                shard: tuple[int, int] = (0, 1), reference_only: bool = False) -> dict:
+    """Label the FD reference calculations, then (unless ``reference_only``) the round
+    samples, skipping stored keys.
 
     ``shard = (i, n)``: this process takes every n-th task starting at i and writes its own
     store (several single-process CP2K workers side by side); keys finished by any shard are
@@ -301,7 +302,8 @@ def stage_label(study: Study, until: dt.datetime | None = None,
                                                      "molecule_id": study.cfg["molecule_id"]},
                                                source=t.key), t.stress)
             for t in study.fd_tasks()]
-    todo += study.round_tasks()
+    if not reference_only:
+        todo += study.round_tasks()
     n_new = n_fail = 0
     index, n_shards = shard
     path = study.shard_store(index)

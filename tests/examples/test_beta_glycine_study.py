@@ -64,6 +64,12 @@ def test_study_runs_end_to_end_and_resumes(tmp_path, fake):
     lines = []
     with pytest.raises(SystemExit, match="optimize stage"):
         study_mod.run(["label"], cfg, labeler=labeler, log=lines.append)
+    study = study_mod.run(["optimize"], cfg, labeler=labeler, log=lines.append)
+    # the finite differences alone first (campaign_job.py label --reference-only)
+    out = study_mod.stage_label(study, reference_only=True)
+    assert out["new"] == 19 and out["failed"] == 0
+    with DatasetStore(study.shard_store(0)) as store:
+        assert sorted({k.split("/")[0] for k in store.keys()}) == ["opt", "ref-opt"]
     study_mod.run(["optimize", "label", "reference", "train", "sample", "label", "train",
                    "emlp", "table"], cfg, labeler=labeler, log=lines.append)
     opt = json.loads((tmp_path / "run" / "optimization.json").read_text())
