@@ -21,6 +21,10 @@
 #                 settings_check.py: 400/500/600 Ry, relative cutoff 50/60, one sample; ~1 CPU h;
 #                 each candidate committed to examples/beta_glycine/settings_check/), after
 #                 bg-optimize on its core
+#   bg-reference  the 19 finite-difference CP2K calculations at the DFT optimum (campaign_job.py
+#                 label --reference-only: ~19 x 6 CPU min, shards committed every 25 min), then
+#                 the DFT tensors (run_study.py reference) -> examples/beta_glycine/
+#                 dft_reference.json, committed; after bg-settings on its core
 #   val-refs      the DFT polarizabilities of mini-eQM7's validation molecules
 #                 (examples/eqm7/validation_references.py; files committed every 25 min), on
 #                 the core beside bg-optimize
@@ -67,7 +71,7 @@ stop_job() {
   if running "$1"; then
     # raman-dft and bakeoff are a bash -c around their script: stop the script itself (the
     # recipe keeps its SCF files, a training its last finished epoch)
-    case "$1" in raman-dft|bakeoff) pkill -TERM -P "$(cat "$PIDS/$1.pid")" 2>/dev/null ;; esac
+    case "$1" in raman-dft|bakeoff|bg-reference) pkill -TERM -P "$(cat "$PIDS/$1.pid")" 2>/dev/null ;; esac
     kill "$(cat "$PIDS/$1.pid")" && echo "$1: stopping (it saves and commits its finished work)"
   fi
 }
@@ -125,6 +129,26 @@ start_bg_settings() {
     >> runs/bg-settings.log 2>&1 &
   echo $! > "$PIDS/bg-settings.pid"
   echo "bg-settings: PID $!, log runs/bg-settings.log"
+}
+
+BG_REFERENCE_JSON=examples/beta_glycine/dft_reference.json
+
+start_bg_reference() {
+  running bg-reference && return 0
+  [ -f "$BG_REFERENCE_JSON" ] && return 0
+  [ -f "$BG_SETTINGS_JSON" ] && bg_optimize_done || return 0
+  command -v cp2k.psmp >/dev/null || { echo "bg-reference: no CP2K (make install-cp2k)"; return 0; }
+  code_copy bgref
+  OMP_NUM_THREADS=1 nohup bash -c "PYTHONPATH=/tmp/emlp-bgref/src $PY \
+    /tmp/emlp-bgref/examples/beta_glycine/campaign_job.py label --reference-only --commit \
+    --config examples/beta_glycine/config.yaml && PYTHONPATH=/tmp/emlp-bgref/src $PY \
+    /tmp/emlp-bgref/examples/beta_glycine/run_study.py reference --config \
+    examples/beta_glycine/config.yaml && cp runs/bg_sc212/dft.json $BG_REFERENCE_JSON.tmp && \
+    mv $BG_REFERENCE_JSON.tmp $BG_REFERENCE_JSON && PYTHONPATH=src $PY -c \"from \
+    emlpack.commits import git_commit; git_commit(['$BG_REFERENCE_JSON'], 'beta-glycine: DFT \
+    tensors at the DFT optimum (finite differences, CP2K 400 Ry)')\"" >> runs/bg-reference.log 2>&1 &
+  echo $! > "$PIDS/bg-reference.pid"
+  echo "bg-reference: PID $!, log runs/bg-reference.log"
 }
 
 val_refs_done() {
@@ -192,7 +216,7 @@ start_alpha_labels() {
 
 others() {  # how many of the other jobs run (each takes one core)
   local n=0 job
-  for job in level-choice bg-optimize bg-settings val-refs raman-dft bakeoff alpha-labels; do running "$job" && n=$((n + 1)); done
+  for job in level-choice bg-optimize bg-settings bg-reference val-refs raman-dft bakeoff alpha-labels; do running "$job" && n=$((n + 1)); done
   echo "$n"
 }
 
@@ -213,6 +237,7 @@ start_pretrain() {  # start_pretrain WORKERS
 start_all() {
   start_bg_optimize
   running bg-optimize || start_bg_settings
+  running bg-optimize || running bg-settings || start_bg_reference
   start_level_choice
   # the brief's second stage (the equivariant family and the faster trainer exist): the chain
   # val-refs -> raman-dft -> bakeoff -> alpha-labels takes one core beside bg-optimize; the
@@ -253,7 +278,7 @@ tree() {  # tree PID: the process and all its descendants
 
 signal_jobs() {  # signal_jobs SIGNAL: the running jobs (not the watcher) and their children
   local job pids=""
-  for job in level-choice bg-optimize bg-settings val-refs raman-dft bakeoff alpha-labels pretrain; do
+  for job in level-choice bg-optimize bg-settings bg-reference val-refs raman-dft bakeoff alpha-labels pretrain; do
     running "$job" && pids="$pids $(tree "$(cat "$PIDS/$job.pid")" | tr "\n" " ")"
   done
   # shellcheck disable=SC2086
@@ -263,7 +288,7 @@ signal_jobs() {  # signal_jobs SIGNAL: the running jobs (not the watcher) and th
 
 status() {
   local job
-  for job in level-choice bg-optimize bg-settings val-refs raman-dft bakeoff alpha-labels pretrain watcher; do
+  for job in level-choice bg-optimize bg-settings bg-reference val-refs raman-dft bakeoff alpha-labels pretrain watcher; do
     if running "$job"; then echo "$job: running (PID $(cat "$PIDS/$job.pid"))"; else echo "$job: not running"; fi
   done
   echo "--- level choice"
@@ -272,6 +297,7 @@ status() {
   echo "--- beta-glycine DFT optimisation$([ -f examples/beta_glycine/HOLD ] && echo ' (on hold: examples/beta_glycine/HOLD)')"
   grep "optimize step" runs/bg-optimize.log 2>/dev/null | tail -2 || true
   ls datasets/beta-glycine-sc212/shards/*.h5 2>/dev/null | wc -l | sed 's/^/shards (2x1x2 supercell): /'
+  echo "--- DFT tensors at the optimum: $(grep -c 'label: ref-opt.* done' runs/bg-reference.log 2>/dev/null || echo 0) of 19 calculations this session$([ -f "$BG_REFERENCE_JSON" ] && echo ', dft_reference.json written')"
   echo "--- CP2K settings at the optimum: $(ls examples/beta_glycine/settings_check/*.json 2>/dev/null | wc -l) of 5 candidates$([ -f "$BG_SETTINGS_JSON" ] && echo ', table written')"
   echo "--- validation references: $(ls datasets/mini-eqm7/references/pbe0_aug-cc-pvtz/validation/*.json 2>/dev/null | wc -l) of 15"
   echo "--- bake-off (examples/eqm7/bakeoff.yaml)"
@@ -301,7 +327,7 @@ case "${1:-start}" in
   stop)
     signal_jobs CONT >/dev/null  # a paused job must run to see its SIGTERM
     stop_job watcher
-    for job in level-choice bg-optimize bg-settings val-refs raman-dft bakeoff alpha-labels pretrain; do stop_job "$job"; done
+    for job in level-choice bg-optimize bg-settings bg-reference val-refs raman-dft bakeoff alpha-labels pretrain; do stop_job "$job"; done
     ;;
   status) status ;;
   pause) signal_jobs STOP ;;
