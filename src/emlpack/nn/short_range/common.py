@@ -79,8 +79,10 @@ class CompiledOnce:
 # docs/performance.md, issue 49). ``torch.ops.mkldnn._linear_pointwise`` is inductor's own
 # op for frozen weights (its lowering wants a constant weight), so it is wrapped here in a
 # custom op that inductor calls as it is, with its backward written out: the input gradient
-# is another inner product, the weight gradient ``g^T x`` one of the transposed operands
-# (their transposition fused by inductor into the kernels that produce them).
+# is another inner product; the weight gradient ``g^T x`` stays with MKL, which reads the
+# transposed operand in place (oneDNN needs both operands transposed into contiguous copies:
+# eagerly 1.7 ms each for (11,400 x 64), fused by inductor no faster overall than MKL;
+# measured, docs/performance.md).
 
 
 def _onednn_ok() -> bool:
@@ -90,8 +92,7 @@ def _onednn_ok() -> bool:
         return False
 
 
-_WGRAD_ONEDNN = __import__("os").environ.get("EMLP_WGRAD", "mkl") == "onednn"
-_ONEDNN = _onednn_ok() and __import__("os").environ.get("EMLP_ONEDNN", "1") == "1"
+_ONEDNN = _onednn_ok()
 
 
 def _onednn_product(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -99,7 +100,7 @@ def _onednn_product(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
                                               [], "")
 
 
-def _make_op(name: str, wgrad_onednn: bool):  # noqa: ANN202
+def _make_op(name: str):  # noqa: ANN202
     op = torch.library.custom_op(f"emlpack::{name}", _onednn_product, mutates_args=())
 
     @op.register_fake
@@ -116,20 +117,19 @@ def _make_op(name: str, wgrad_onednn: bool):  # noqa: ANN202
         gx = op(g, w.t().contiguous()) if ctx.needs_input_grad[0] else None
         gw = None
         if ctx.needs_input_grad[1]:
-            gw = op(g.t().contiguous(), x.t().contiguous()) if wgrad_onednn else g.t() @ x
+            gw = g.t() @ x  # MKL takes the transposed operand as it is
         return gx, gw
 
     op.register_autograd(backward, setup_context=setup)
     return op
 
 
-_onednn_linear = _make_op("onednn_linear", False)
-_onednn_linear_dnnwg = _make_op("onednn_linear_dnnwg", True)
+_onednn_linear = _make_op("onednn_linear")
 
 
 def edge_linear(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """``x w^T`` (``nn.functional.linear`` without bias), by oneDNN for float32 on CPU (see
     above; the same product to float32 rounding), else by ``linear``."""
     if _ONEDNN and x.dtype == torch.float32 and x.device.type == "cpu" and x.dim() == 2:
-        return (_onednn_linear_dnnwg if _WGRAD_ONEDNN else _onednn_linear)(x, w)
+        return _onednn_linear(x, w)
     return nn.functional.linear(x, w)

@@ -27,15 +27,19 @@ with ``dw/dr`` in forward mode through the filter network, from the basis' deriv
 product (stacked rows), and the first layers of all interactions are one product.
 
 The basis, the cutoff and their derivatives depend on the geometry only (no gradient flows
-through them). Float64 results equal autograd's to rounding (``tests/nn/test_training_forward.py``:
-energies and dE/dr 1e-12, the loss gradients 1e-11 eager and 1e-10 compiled).
+through them): computed before the step, compiled apart (:func:`_geometry`), and passed in,
+so that inductor cannot recompute them inside the edge kernels. The edge-sized products go
+through oneDNN in float32 (:func:`emlpack.nn.short_range.common.edge_linear`), the shifted
+softplus and its slope come from one exponential (:func:`_ssp_slope`); measured in
+``docs/performance.md`` (issue 49). Float64 results equal autograd's to rounding
+(``tests/nn/test_training_forward.py``: energies and dE/dr 1e-12, the loss gradients 1e-11
+eager and 1e-10 compiled; float32 loss gradients within 1e-5 of the double backward's).
 """
 
 from __future__ import annotations
 
 import logging
 import math
-import os
 
 import torch
 from torch import nn
@@ -45,9 +49,6 @@ from emlpack.nn.short_range.common import LN2, CompiledOnce, edge_linear
 
 log = logging.getLogger(__name__)
 
-_FIRST_JOINT = os.environ.get("EMLP_FIRST_JOINT", "0") == "1"
-_GEO_COMPILED = os.environ.get("EMLP_GEO", "1") == "1"
-_ONE_EXP = os.environ.get("EMLP_ONE_EXP", "1") == "1"
 
 __all__ = ["compile_failure", "energies_and_length_gradient", "radial_taylor", "schnet_weights"]
 
@@ -97,21 +98,14 @@ def schnet_weights(schnet: nn.Module) -> list[torch.Tensor]:
     return out
 
 
-def _slope(x: torch.Tensor) -> torch.Tensor:
-    """d softplus(x)/dx as torch's autograd takes it (1 above the threshold 20)."""
-    return torch.where(x > 20.0, 1.0, torch.sigmoid(x))
-
-
-def _ssp(x: torch.Tensor) -> torch.Tensor:
-    return nn.functional.softplus(x) - LN2
-
-
 def _ssp_slope(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``(ssp(x), s(x))``, the shifted softplus and its slope, from one exponential
     ``e = exp(min(x, 20))``: ``softplus = log1p(e)`` (torch's formula; ``x`` above its
-    threshold 20), ``s = e / (1 + e)`` (1 above 20, as autograd takes torch's)."""
-    if not _ONE_EXP:
-        return _ssp(x), _slope(x)
+    threshold 20), ``s = e / (1 + e)`` (1 above 20, as autograd takes torch's): one
+    transcendental per element fewer than ``softplus`` and ``sigmoid`` apart (measured 42.9
+    -> 39.4 ms a step, docs/performance.md). A custom autograd function saving ``s`` for the
+    backward does not trace under dynamo (torch 2.13: ``lift_tracked_freevar_to_input``
+    with the split's symbolic size), so the partitioner decides what to save."""
     big = x > 20.0
     e = torch.exp(torch.clamp(x, max=20.0))
     return torch.where(big, x, torch.log1p(e)) - LN2, torch.where(big, 1.0, e / (1.0 + e))
@@ -139,14 +133,12 @@ def _energies_and_gradient(
     n_edges = fc.shape[0]
     # the filters and their derivative in r (forward mode), the first layer of every
     # interaction in one product of the basis and its derivative stacked: (2E, n_rbf)
-    if _FIRST_JOINT:
-        first = edge_linear(basis, torch.cat([b[0] for b in blocks]))
+    # the filters and their derivative in r (forward mode): value and derivative rows
+    # stacked in each product (the first layers of all interactions in one product, sliced
+    # apart, measured slower: its gradient is assembled from the slices)
     filters, slopes = [], []
-    for t, (w1, b1, w2, b2, *_) in enumerate(blocks):
-        if _FIRST_JOINT:
-            z1, t1 = first[:, t * b1.shape[0]:(t + 1) * b1.shape[0]].split(n_edges)
-        else:
-            z1, t1 = edge_linear(basis, w1).split(n_edges)
+    for w1, b1, w2, b2, *_ in blocks:
+        z1, t1 = edge_linear(basis, w1).split(n_edges)
         y1, s1 = _ssp_slope(z1 + b1)
         second = edge_linear(torch.cat([y1, s1 * t1]), w2)
         z2, t2 = second.split(n_edges)
@@ -212,6 +204,6 @@ def energies_and_length_gradient(
     with torch.no_grad():
         basis, fc, dfc = _GEOMETRY(r.detach(), schnet.rbf.centers.to(r.dtype), schnet.rbf.width,
                                    schnet.cutoff - schnet.cutoff_transition,
-                                   schnet.cutoff_transition, compiled=compiled and _GEO_COMPILED)
+                                   schnet.cutoff_transition, compiled=compiled)
     args = (schnet_weights(schnet), numbers, basis, fc, dfc, i, j, float(schnet.message_norm))
     return _STEP(*args, compiled=compiled)
