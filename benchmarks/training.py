@@ -46,6 +46,8 @@ from _common import ROOT, machine_info, write_json  # noqa: E402
 PATHS = {"double_backward": {"parameters_only": False, "compiled": False},
          "parameters_only": {"parameters_only": True, "compiled": False},
          "compiled": {"parameters_only": True, "compiled": True}}
+#: matrix products: aten's and oneDNN's (``mkldnn::_linear_pointwise``, the edge products of
+#: :func:`emlpack.nn.short_range.common.edge_linear`)
 MATMUL = ("aten::mm", "aten::addmm", "aten::bmm", "aten::matmul", "mkldnn", "aten::linear")
 
 
@@ -135,7 +137,7 @@ def profile_step(stepper: Stepper, batches) -> dict:
     ops = [e for e in events if e.key.startswith("aten::")]
     # self times add up to the profiled CPU time, compiled kernels included
     total = sum(e.self_cpu_time_total for e in events)
-    mm = sum(e.self_cpu_time_total for e in ops if e.key.startswith(MATMUL))
+    mm = sum(e.self_cpu_time_total for e in events if e.key.startswith(MATMUL))
     return {"operator_calls_per_step": sum(e.count for e in ops) / len(batches),
             "matmul_fraction": mm / total if total else float("nan")}
 

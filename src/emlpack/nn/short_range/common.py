@@ -13,8 +13,8 @@ from torch import nn
 
 from emlpack import geometry
 
-__all__ = ["LN2", "CompiledOnce", "cosine_cutoff", "edge_lengths", "shifted_softplus",
-           "softplus_slopes"]
+__all__ = ["LN2", "CompiledOnce", "cosine_cutoff", "edge_lengths", "edge_linear",
+           "shifted_softplus", "softplus_slopes"]
 
 LN2 = math.log(2.0)
 
@@ -70,3 +70,66 @@ class CompiledOnce:
                 self.log.warning("torch.compile of the %s training step failed (%.200r);"
                                  " training goes on uncompiled", self.what, err)
         return self.fn(*args)
+
+
+# ---------------------------------------------------------------------- oneDNN products
+# The edge-sized products of the training steps ((E, K) x (K, K), E ~ 5,700) through oneDNN's
+# inner product rather than aten::mm: torch's CPU build calls MKL for float32 mm, which on the
+# project's AMD cores (Zen, AVX-512) runs at ~55 GFLOP/s against oneDNN's ~140 (measured,
+# docs/performance.md, issue 49). ``torch.ops.mkldnn._linear_pointwise`` is inductor's own
+# op for frozen weights (its lowering wants a constant weight), so it is wrapped here in a
+# custom op that inductor calls as it is, with its backward written out: the input gradient
+# is another inner product; the weight gradient ``g^T x`` stays with MKL, which reads the
+# transposed operand in place (oneDNN needs both operands transposed into contiguous copies:
+# eagerly 1.7 ms each for (11,400 x 64), fused by inductor no faster overall than MKL;
+# measured, docs/performance.md).
+
+
+def _onednn_ok() -> bool:
+    try:
+        return bool(torch.backends.mkldnn.is_available())
+    except Exception:  # noqa: BLE001
+        return False
+
+
+_ONEDNN = _onednn_ok()
+
+
+def _onednn_product(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    return torch.ops.mkldnn._linear_pointwise(x.contiguous(), w.contiguous(), None, "none",
+                                              [], "")
+
+
+def _make_op(name: str):  # noqa: ANN202
+    op = torch.library.custom_op(f"emlpack::{name}", _onednn_product, mutates_args=())
+
+    @op.register_fake
+    def _(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        return x.new_empty(x.shape[0], w.shape[0])
+
+    def setup(ctx, inputs, output) -> None:  # noqa: ANN001
+        x, w = inputs
+        ctx.save_for_backward(x if ctx.needs_input_grad[1] else None,
+                              w if ctx.needs_input_grad[0] else None)
+
+    def backward(ctx, g: torch.Tensor):  # noqa: ANN001, ANN202
+        x, w = ctx.saved_tensors
+        gx = op(g, w.t().contiguous()) if ctx.needs_input_grad[0] else None
+        gw = None
+        if ctx.needs_input_grad[1]:
+            gw = g.t() @ x  # MKL takes the transposed operand as it is
+        return gx, gw
+
+    op.register_autograd(backward, setup_context=setup)
+    return op
+
+
+_onednn_linear = _make_op("onednn_linear")
+
+
+def edge_linear(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """``x w^T`` (``nn.functional.linear`` without bias), by oneDNN for float32 on CPU (see
+    above; the same product to float32 rounding), else by ``linear``."""
+    if _ONEDNN and x.dtype == torch.float32 and x.device.type == "cpu" and x.dim() == 2:
+        return _onednn_linear(x, w)
+    return nn.functional.linear(x, w)

@@ -42,7 +42,7 @@ import torch
 from torch import nn
 
 from emlpack.nn.scatter import segment_sum
-from emlpack.nn.short_range.common import CompiledOnce, edge_lengths
+from emlpack.nn.short_range.common import CompiledOnce, edge_lengths, edge_linear
 
 log = logging.getLogger(__name__)
 
@@ -119,7 +119,7 @@ def _energies_and_gradient(
     # all filters of all interactions in one product (E, T, 3, F): channels (s, vv, vr)
     basis = torch.cat([rbf * fc[:, None], fc[:, None]], 1)  # (E, R + 1)
     w_all = torch.cat([w_f, b_f[:, None]], 1)  # (3 F T, R + 1)
-    filt = (basis @ w_all.T).view(n_edges, n_t, 3, f)
+    filt = edge_linear(basis, w_all).view(n_edges, n_t, 3, f)
     source = torch.cat([j, i + n])
     source_v, target = torch.cat([j, i]), torch.cat([i, j])
     flip = torch.ones(3 * f, dtype=d.dtype, device=d.device)
@@ -192,7 +192,8 @@ def _energies_and_gradient(
         g_phi = g_tab[:n] + g_tab[n:] * flip
         gs = gs + ((g_phi @ w2) * _silu_slope(z1)) @ w1
         g_filt.append(torch.stack([g_fs, g_fvv, g_fr], 1))  # (E, 3, F)
-    g_basis = torch.stack(g_filt[::-1], 1).view(n_edges, -1) @ w_all  # (E, R + 1)
+    g_filt = torch.stack(g_filt[::-1], 1).view(n_edges, -1)
+    g_basis = edge_linear(g_filt, w_all.t())  # (E, R + 1); oneDNN in float32 (common.py)
     g_rbf = g_basis[:, :-1]
     g_fc = (g_rbf * rbf).sum(1) + g_basis[:, -1]
     g_r = (g_rbf * drbf).sum(1) * fc

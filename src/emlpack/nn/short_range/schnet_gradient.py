@@ -27,8 +27,13 @@ with ``dw/dr`` in forward mode through the filter network, from the basis' deriv
 product (stacked rows), and the first layers of all interactions are one product.
 
 The basis, the cutoff and their derivatives depend on the geometry only (no gradient flows
-through them). Float64 results equal autograd's to rounding (``tests/nn/test_training_forward.py``:
-energies and dE/dr 1e-12, the loss gradients 1e-11 eager and 1e-10 compiled).
+through them): computed before the step, compiled apart (:func:`_geometry`), and passed in,
+so that inductor cannot recompute them inside the edge kernels. The edge-sized products go
+through oneDNN in float32 (:func:`emlpack.nn.short_range.common.edge_linear`), the shifted
+softplus and its slope come from one exponential (:func:`_ssp_slope`); measured in
+``docs/performance.md`` (issue 49). Float64 results equal autograd's to rounding
+(``tests/nn/test_training_forward.py``: energies and dE/dr 1e-12, the loss gradients 1e-11
+eager and 1e-10 compiled; float32 loss gradients within 1e-5 of the double backward's).
 """
 
 from __future__ import annotations
@@ -40,9 +45,10 @@ import torch
 from torch import nn
 
 from emlpack.nn.scatter import convolve
-from emlpack.nn.short_range.common import LN2, CompiledOnce
+from emlpack.nn.short_range.common import LN2, CompiledOnce, edge_linear
 
 log = logging.getLogger(__name__)
+
 
 __all__ = ["compile_failure", "energies_and_length_gradient", "radial_taylor", "schnet_weights"]
 
@@ -92,70 +98,87 @@ def schnet_weights(schnet: nn.Module) -> list[torch.Tensor]:
     return out
 
 
-def _slope(x: torch.Tensor) -> torch.Tensor:
-    """d softplus(x)/dx as torch's autograd takes it (1 above the threshold 20)."""
-    return torch.where(x > 20.0, 1.0, torch.sigmoid(x))
-
-
-def _ssp(x: torch.Tensor) -> torch.Tensor:
-    return nn.functional.softplus(x) - LN2
+def _ssp_slope(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(ssp(x), s(x))``, the shifted softplus and its slope, from one exponential
+    ``e = exp(min(x, 20))``: ``softplus = log1p(e)`` (torch's formula; ``x`` above its
+    threshold 20), ``s = e / (1 + e)`` (1 above 20, as autograd takes torch's): one
+    transcendental per element fewer than ``softplus`` and ``sigmoid`` apart (measured 42.9
+    -> 39.4 ms a step, docs/performance.md). A custom autograd function saving ``s`` for the
+    backward does not trace under dynamo (torch 2.13: ``lift_tracked_freevar_to_input``
+    with the split's symbolic size), so the partitioner decides what to save."""
+    big = x > 20.0
+    e = torch.exp(torch.clamp(x, max=20.0))
+    return torch.where(big, x, torch.log1p(e)) - LN2, torch.where(big, 1.0, e / (1.0 + e))
 
 
 def _energies_and_gradient(
     weights: list[torch.Tensor],
     numbers: torch.Tensor,
-    r: torch.Tensor,
-    centers: torch.Tensor,
+    basis: torch.Tensor,
+    fc: torch.Tensor,
+    dfc: torch.Tensor,
     i: torch.Tensor,
     j: torch.Tensor,
-    radial: tuple[float, float, float],
     norm: float,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The module docstring's forward and backward on plain tensors (compilable);
-    ``radial``: the basis width, the start and the width of the cutoff's switch (Å)."""
-    (rbf, drbf), (fc, dfc) = _radial_taylor(r, centers, *radial, order=1)
+    """The module docstring's forward and backward on plain tensors (compilable); ``basis``
+    (2E, n_rbf): the Gaussians and their r-derivative stacked, ``fc``, ``dfc`` (E, 1): the
+    cutoff and its derivative (:func:`radial_taylor`, computed outside: no gradient flows
+    there)."""
     linear = nn.functional.linear
     n_int = (len(weights) - 7) // _PER_INTERACTION
     blocks = [weights[1 + _PER_INTERACTION * t: 1 + _PER_INTERACTION * (t + 1)]
               for t in range(n_int)]
     w_o0, b_o0, w_o1, b_o1, w_o2, b_o2 = weights[1 + _PER_INTERACTION * n_int:]
-    n_edges = rbf.shape[0]
+    n_edges = fc.shape[0]
     # the filters and their derivative in r (forward mode), the first layer of every
     # interaction in one product of the basis and its derivative stacked: (2E, n_rbf)
-    first = linear(torch.cat([rbf, drbf]), torch.cat([b[0] for b in blocks]))
+    # the filters and their derivative in r (forward mode): value and derivative rows
+    # stacked in each product (the first layers of all interactions in one product, sliced
+    # apart, measured slower: its gradient is assembled from the slices)
     filters, slopes = [], []
-    for t, (_, b1, w2, b2, *_) in enumerate(blocks):
-        z1, t1 = first[:, t * b1.shape[0]:(t + 1) * b1.shape[0]].split(n_edges)
-        z1 = z1 + b1
-        second = linear(torch.cat([_ssp(z1), _slope(z1) * t1]), w2)
+    for w1, b1, w2, b2, *_ in blocks:
+        z1, t1 = edge_linear(basis, w1).split(n_edges)
+        y1, s1 = _ssp_slope(z1 + b1)
+        second = edge_linear(torch.cat([y1, s1 * t1]), w2)
         z2, t2 = second.split(n_edges)
-        z2 = z2 + b2
-        y2 = _ssp(z2)
+        y2, s2 = _ssp_slope(z2 + b2)
         filters.append(y2 * fc)
-        slopes.append(_slope(z2) * t2 * fc + y2 * dfc)  # dw/dr (E, K)
-    h = weights[0].index_select(0, numbers).to(rbf.dtype)
+        slopes.append(s2 * t2 * fc + y2 * dfc)  # dw/dr (E, K)
+    h = weights[0].index_select(0, numbers).to(basis.dtype)
     saved = []
     for (*_, w_in, b_in, w_c, b_c, w3, b3), w in zip(blocks, filters, strict=True):
         a = linear(h, w_in, b_in)
         z3 = linear(convolve(a, w, i, j) / norm, w_c, b_c)
-        h = h + linear(_ssp(z3), w3, b3)
-        saved.append((a, z3))
-    p0 = linear(h, w_o0, b_o0)
-    p1 = linear(_ssp(p0), w_o1, b_o1)
-    energies = linear(_ssp(p1), w_o2, b_o2).squeeze(-1)
+        y3, s3 = _ssp_slope(z3)
+        h = h + linear(y3, w3, b3)
+        saved.append((a, s3))
+    y0, s0 = _ssp_slope(linear(h, w_o0, b_o0))
+    y1, s1 = _ssp_slope(linear(y0, w_o1, b_o1))
+    energies = linear(y1, w_o2, b_o2).squeeze(-1)
     # reverse pass: g = dE/dh, every step an ordinary (differentiable) operation
-    g = ((_slope(p1) * w_o2) @ w_o1) * _slope(p0) @ w_o0
-    dedr = torch.zeros_like(rbf[:, 0])
-    for (*_, w_in, _, w_c, _, w3, _), w, dw, (a, z3) in zip(
+    g = ((s1 * w_o2) @ w_o1) * s0 @ w_o0
+    dedr = None
+    for (*_, w_in, _, w_c, _, w3, _), w, dw, (a, s3) in zip(
             reversed(blocks), reversed(filters), reversed(slopes), reversed(saved), strict=True):
-        gc = ((g @ w3) * _slope(z3)) @ w_c / norm
+        gc = ((g @ w3) * s3) @ w_c / norm
         gw = (a.index_select(0, j) * gc.index_select(0, i)
               + a.index_select(0, i) * gc.index_select(0, j))
         g = g + convolve(gc, w, i, j) @ w_in
-        dedr = dedr + (gw * dw).sum(1)
+        term = (gw * dw).sum(1)
+        dedr = term if dedr is None else dedr + term
     return energies, dedr
 
 
+def _geometry(r: torch.Tensor, centers: torch.Tensor, width: float, start: float,
+              tr: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The basis and its r-derivative stacked (2E, n_rbf), the cutoff and its derivative
+    (E, 1) each: :func:`radial_taylor`'s, the step's geometry (no gradient flows there)."""
+    (rbf, drbf), (fc, dfc) = _radial_taylor(r, centers, width, start, tr, order=1)
+    return torch.cat([rbf, drbf]), fc, dfc
+
+
+_GEOMETRY = CompiledOnce(_geometry, "SchNet geometry", log)
 _STEP = CompiledOnce(_energies_and_gradient, "SchNet", log)
 
 
@@ -178,8 +201,9 @@ def energies_and_length_gradient(
     parameters and not in ``r``; ``compiled``: through ``torch.compile`` (the first call
     compiles, about a minute; a compiler error falls back to the plain evaluation with a
     logged warning)."""
-    radial = (schnet.rbf.width, schnet.cutoff - schnet.cutoff_transition,
-              schnet.cutoff_transition)
-    args = (schnet_weights(schnet), numbers, r.detach(), schnet.rbf.centers.to(r.dtype), i, j,
-            radial, float(schnet.message_norm))
+    with torch.no_grad():
+        basis, fc, dfc = _GEOMETRY(r.detach(), schnet.rbf.centers.to(r.dtype), schnet.rbf.width,
+                                   schnet.cutoff - schnet.cutoff_transition,
+                                   schnet.cutoff_transition, compiled=compiled)
+    args = (schnet_weights(schnet), numbers, basis, fc, dfc, i, j, float(schnet.message_norm))
     return _STEP(*args, compiled=compiled)
