@@ -140,7 +140,7 @@ start_bg_reference() {
   command -v cp2k.psmp >/dev/null || { echo "bg-reference: no CP2K (make install-cp2k)"; return 0; }
   code_copy bgref
   OMP_NUM_THREADS=1 nohup bash -c "PYTHONPATH=/tmp/emlp-bgref/src $PY \
-    /tmp/emlp-bgref/examples/beta_glycine/campaign_job.py label --reference-only --commit \
+    /tmp/emlp-bgref/examples/beta_glycine/campaign_job.py label --reference-only --commit --shard-min-records 2 \
     --config examples/beta_glycine/config.yaml && PYTHONPATH=/tmp/emlp-bgref/src $PY \
     /tmp/emlp-bgref/examples/beta_glycine/run_study.py reference --config \
     examples/beta_glycine/config.yaml && cp runs/bg_sc212/dft.json $BG_REFERENCE_JSON.tmp && \
