@@ -179,16 +179,20 @@ def main(argv: list[str] | None = None) -> None:
         work = study.store_path
     else:
         work = study.shard_store(index)
-    with terminate_as_interrupt():
-        try:
-            if args.action == "optimize":
-                run_study.stage_optimize(study)
-            else:
-                run_study.stage_label(study, shard=(index, n_shards),
-                                      reference_only=args.reference_only)
-        finally:
-            with DatasetStore(work, "a") as store:
-                exporter.flush(store)
+    try:
+        with terminate_as_interrupt():
+            try:
+                if args.action == "optimize":
+                    run_study.stage_optimize(study)
+                else:
+                    run_study.stage_label(study, shard=(index, n_shards),
+                                          reference_only=args.reference_only)
+            finally:
+                with DatasetStore(work, "a") as store:
+                    exporter.flush(store)
+    except KeyboardInterrupt:  # SIGTERM or Ctrl-C: the finished records are in a shard
+        raise SystemExit(f"campaign_job.py {args.action}: interrupted; its finished work is"
+                         " saved (re-run the same command to go on)") from None
 
 
 if __name__ == "__main__":
